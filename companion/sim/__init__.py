@@ -1,0 +1,1 @@
+"""The simulator: scene renderers, vehicle dynamics, the scripted fake autopilot, `companion sim`."""

@@ -1,0 +1,1 @@
+"""Vision: the pipe-rack tracker and the downward ground odometer."""

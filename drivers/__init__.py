@@ -1,0 +1,1 @@
+"""Adapters to the world: cameras, the MAVLink transport, the control API server."""
