@@ -1,0 +1,67 @@
+"""Inspection missions: XML format, hardened parser, pure executor and photo sidecars (issue 6)."""
+
+from companion.errors import MissionError
+from companion.mission.executor import (
+    ActionResult,
+    EventKind,
+    ExecutorOutput,
+    Goal,
+    MissionEvent,
+    MissionExecutor,
+    NavSnapshot,
+    Progress,
+    Request,
+    RequestKind,
+    State,
+)
+from companion.mission.model import (
+    Action,
+    Frame,
+    GotoXY,
+    GotoZ,
+    Home,
+    Hover,
+    Land,
+    Mission,
+    MissionLimits,
+    RackLayout,
+    Servo,
+    Takeoff,
+    TakePhoto,
+)
+from companion.mission.parser import MAX_MISSION_BYTES, load_mission, parse_mission, validate_cli
+from companion.mission.photo import photo_basename, photo_sidecar
+
+__all__ = [
+    "MAX_MISSION_BYTES",
+    "Action",
+    "ActionResult",
+    "EventKind",
+    "ExecutorOutput",
+    "Frame",
+    "Goal",
+    "GotoXY",
+    "GotoZ",
+    "Home",
+    "Hover",
+    "Land",
+    "Mission",
+    "MissionError",
+    "MissionEvent",
+    "MissionExecutor",
+    "MissionLimits",
+    "NavSnapshot",
+    "Progress",
+    "RackLayout",
+    "Request",
+    "RequestKind",
+    "Servo",
+    "State",
+    "TakePhoto",
+    "Takeoff",
+    "load_mission",
+    "parse_mission",
+    "photo_basename",
+    "photo_sidecar",
+    "validate_cli",
+]

@@ -1,0 +1,668 @@
+"""Pure mission executor: a state machine turning actions into goals and discrete requests.
+
+Time and navigation come in as arguments; nothing here does I/O or reads a clock. The daemon
+calls `step(now_s, nav)` at its control rate (10-50 Hz) and acts on the output:
+
+- `output.goal` (a `Goal`): servo toward `goal.T_ned_body_goal` (ServoLaw + SafetyManager.filter);
+- `output.request` (a new `Request`, issued once): ARM, TAKEOFF(height_m), LAND, PHOTO(camera) --
+  do it, then call `notify(request.id, ok)`; HOLD -- switch the autopilot to its hold/loiter
+  mode (no notify needed);
+- `output.hold`: no goal is active and the vehicle should hold where it is (paused, aborted,
+  failed, or completed in the air);
+- `output.events`: mission events for the console, STATUSTEXT and the control API.
+
+States: IDLE -> RUNNING <-> PAUSED -> COMPLETED | FAILED (an action failed or timed out:
+abort and hover) | ABORTED (operator or safety abort: hover). Action timers exclude paused time.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray, check_transform
+from companion.errors import MissionError
+from companion.geometry import se3
+from companion.geometry.frames import default_T_ned_rack, wrap_angle, yaw_from_rotation
+from companion.mission.model import (
+    Action,
+    Frame,
+    GotoXY,
+    GotoZ,
+    Home,
+    Hover,
+    Land,
+    Mission,
+    RackLayout,
+    Servo,
+    Takeoff,
+    TakePhoto,
+)
+
+__all__ = [
+    "ActionResult",
+    "EventKind",
+    "ExecutorOutput",
+    "Goal",
+    "MissionEvent",
+    "MissionExecutor",
+    "NavSnapshot",
+    "Progress",
+    "Request",
+    "RequestKind",
+    "State",
+]
+
+
+class State(enum.StrEnum):
+    """Executor states."""
+
+    IDLE = "idle"  # loaded, not started
+    RUNNING = "running"
+    PAUSED = "paused"  # operator pause: hold, timers frozen
+    COMPLETED = "completed"  # every action succeeded
+    FAILED = "failed"  # an action failed or timed out: mission aborted, vehicle holds
+    ABORTED = "aborted"  # abort() by the operator or the safety manager: vehicle holds
+
+
+_TIME_EPS_S = 1e-9  # float slack on time comparisons (s)
+
+TERMINAL_STATES = frozenset({State.COMPLETED, State.FAILED, State.ABORTED})
+
+
+class RequestKind(enum.StrEnum):
+    """Discrete things the daemon must do for the executor."""
+
+    ARM = "arm"
+    TAKEOFF = "takeoff"  # height_m above home
+    LAND = "land"
+    HOLD = "hold"  # autopilot hold / loiter mode; no notify expected
+    PHOTO = "photo"  # camera
+
+
+class EventKind(enum.StrEnum):
+    """Kinds of mission events."""
+
+    MISSION_STARTED = "mission-started"
+    ACTION_STARTED = "action-started"
+    ACTION_SUCCEEDED = "action-succeeded"
+    ACTION_FAILED = "action-failed"
+    REQUEST = "request"
+    REQUEST_DONE = "request-done"
+    MISSION_PAUSED = "mission-paused"
+    MISSION_RESUMED = "mission-resumed"
+    MISSION_ABORTED = "mission-aborted"
+    MISSION_FAILED = "mission-failed"
+    MISSION_COMPLETED = "mission-completed"
+
+
+@dataclass(frozen=True)
+class NavSnapshot:
+    """What the executor needs to know about the vehicle at one instant.
+
+    stamp_s: time of the estimate (s, monotonic); T_ned_body: body pose in NED (4x4);
+    ok: the pose is fresh and trustworthy; armed, landed: from the autopilot;
+    home_T_ned_body: the home pose (4x4) if the daemon knows it, else the executor takes the
+    first ok pose it sees after start() as home.
+    """
+
+    stamp_s: float
+    T_ned_body: FloatArray
+    ok: bool = True
+    armed: bool = False
+    landed: bool = True
+    home_T_ned_body: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class Goal:
+    """A pose to servo to (NED) with the action's limits and thresholds (m, rad, m/s)."""
+
+    T_ned_body_goal: FloatArray
+    max_speed_m_s: float
+    threshold_m: float
+    yaw_threshold_rad: float
+    action_index: int
+    action_id: str
+
+
+@dataclass(frozen=True)
+class Request:
+    """A discrete request; `id` is echoed in `MissionExecutor.notify`."""
+
+    id: int
+    kind: RequestKind
+    action_index: int | None
+    action_id: str | None
+    height_m: float | None = None
+    camera: str | None = None
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where the mission is: action `index` (0-based) of `count`, errors to the goal, ETA (s)."""
+
+    index: int
+    count: int
+    action: str
+    action_id: str
+    elapsed_s: float
+    timeout_s: float
+    distance_m: float | None
+    yaw_error_rad: float | None
+    eta_s: float | None
+
+    @property
+    def number(self) -> int:
+        """1-based action number."""
+        return self.index + 1
+
+    def text(self) -> str:
+        """One line for the console / GCS, e.g. 'action 5/11 gotoxy move-2m: 1.20 m, ETA 2.4 s'."""
+        parts = [f"action {self.number}/{self.count} {self.action} {self.action_id}"]
+        if self.distance_m is not None:
+            parts.append(f"{self.distance_m:.2f} m")
+        if self.yaw_error_rad is not None:
+            parts.append(f"yaw {math.degrees(self.yaw_error_rad):+.0f} deg")
+        if self.eta_s is not None:
+            parts.append(f"ETA {self.eta_s:.1f} s")
+        return parts[0] + (": " + ", ".join(parts[1:]) if len(parts) > 1 else "")
+
+
+@dataclass(frozen=True)
+class MissionEvent:
+    """One mission event (time in s, severity 'info' | 'warning' | 'error')."""
+
+    time_s: float
+    kind: EventKind
+    message: str
+    severity: str = "info"
+    action_index: int | None = None
+    action_id: str | None = None
+
+
+@dataclass(frozen=True)
+class ActionResult:
+    """Outcome of one action: result is 'succeeded', 'failed', 'timeout' or 'aborted'."""
+
+    index: int
+    action_id: str
+    action: str
+    result: str
+    started_s: float
+    ended_s: float
+    message: str = ""
+    T_ned_body_goal: FloatArray | None = None
+
+    @property
+    def seconds(self) -> float:
+        """Duration of the action (s), paused time included."""
+        return self.ended_s - self.started_s
+
+
+@dataclass(frozen=True)
+class ExecutorOutput:
+    """What one `step` returns (see the module docstring)."""
+
+    time_s: float
+    state: State
+    goal: Goal | None
+    request: Request | None
+    pending_request: Request | None
+    hold: bool
+    progress: Progress | None
+    events: tuple[MissionEvent, ...]
+
+
+@dataclass
+class _Running:
+    """Mutable bookkeeping of the current action (private)."""
+
+    index: int
+    action: Action
+    started_s: float  # shifted forward by paused time
+    wall_started_s: float
+    goal: Goal | None = None
+    request: Request | None = None
+    request_ok: bool | None = None
+    request_message: str = ""
+    phase: str = "start"
+    within_since_s: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _heading_rotation(yaw_rad: float) -> FloatArray:
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class MissionExecutor:
+    """Runs a `Mission` step by step (pure; time injected).
+
+    T_ned_rack: rack-to-NED transform (4x4) or a callable returning it (read whenever a goal in
+        the rack frame is resolved); None = `frames.default_T_ned_rack()`.
+    rack: pipe layout for `servo` actions; None = the mission's `<rack>` declaration.
+    reference_yaw_rate_rad_s: yaw rate used only for the ETA estimate (rad/s).
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        T_ned_rack: Any | Callable[[], Any] | None = None,
+        rack: RackLayout | None = None,
+        reference_yaw_rate_rad_s: float = 0.2,
+    ) -> None:
+        self.mission = mission
+        self._T_ned_rack_source: Any | Callable[[], Any] = (
+            T_ned_rack if T_ned_rack is not None else default_T_ned_rack()
+        )
+        if not callable(self._T_ned_rack_source):
+            self._T_ned_rack_source = check_transform(self._T_ned_rack_source, "T_ned_rack")
+        self.rack = rack if rack is not None else mission.rack
+        for action in mission.actions:
+            if isinstance(action, Servo):
+                where = f"{mission.source_name}:{action.line}: servo.pipe"
+                if self.rack is None:
+                    raise MissionError(
+                        f"{where}: servo actions need a rack layout: declare <rack> in the mission or pass rack="
+                    )
+                if not 1 <= action.pipe <= self.rack.count:
+                    raise MissionError(f"{where}: pipe {action.pipe} does not exist (the rack has {self.rack.count})")
+        self._reference_yaw_rate = float(reference_yaw_rate_rad_s)
+        self._state = State.IDLE
+        self._current: _Running | None = None
+        self._next_index = 0
+        self._home: FloatArray | None = None
+        self._paused_at: float | None = None
+        self._events: list[MissionEvent] = []
+        self._new_request: Request | None = None
+        self._request_counter = 0
+        self._results: list[ActionResult] = []
+        self._last_time_s: float | None = None
+        self._last_nav: NavSnapshot | None = None
+
+    # ------------------------------------------------------------------ public state
+    @property
+    def state(self) -> State:
+        """Current state."""
+        return self._state
+
+    @property
+    def results(self) -> tuple[ActionResult, ...]:
+        """Outcomes of the actions finished so far, in order."""
+        return tuple(self._results)
+
+    @property
+    def pending_request(self) -> Request | None:
+        """The discrete request the current action waits for, if any."""
+        cur = self._current
+        if cur is None or cur.request is None or cur.request_ok is not None:
+            return None
+        return cur.request
+
+    @property
+    def home_T_ned_body(self) -> FloatArray | None:
+        """The home pose (4x4 NED) once known."""
+        return None if self._home is None else self._home.copy()
+
+    def set_T_ned_rack(self, T_ned_rack: Any) -> None:
+        """Replace the rack-to-NED transform used for goals resolved from now on."""
+        self._T_ned_rack_source = check_transform(T_ned_rack, "T_ned_rack")
+
+    # ------------------------------------------------------------------ commands
+    def start(self, now_s: float) -> None:
+        """IDLE -> RUNNING; the first action starts at the next step."""
+        if self._state is not State.IDLE:
+            raise MissionError(f"cannot start: mission is {self._state.value}")
+        self._state = State.RUNNING
+        self._emit(now_s, EventKind.MISSION_STARTED, f"mission '{self.mission.name}' started "
+                   f"({len(self.mission.actions)} actions)")
+
+    def pause(self, now_s: float) -> None:
+        """RUNNING -> PAUSED: hold; the current action's timers stop."""
+        if self._state is not State.RUNNING:
+            raise MissionError(f"cannot pause: mission is {self._state.value}")
+        self._state = State.PAUSED
+        self._paused_at = float(now_s)
+        if self._current is not None:
+            self._current.within_since_s = None
+        self._issue(RequestKind.HOLD, None)
+        self._emit(now_s, EventKind.MISSION_PAUSED, "mission paused: holding", "warning")
+
+    def resume(self, now_s: float) -> None:
+        """PAUSED -> RUNNING: the current action continues with its remaining time."""
+        if self._state is not State.PAUSED:
+            raise MissionError(f"cannot resume: mission is {self._state.value}")
+        paused_s = max(0.0, float(now_s) - (self._paused_at if self._paused_at is not None else float(now_s)))
+        if self._current is not None:
+            self._current.started_s += paused_s
+            if "hover_start_s" in self._current.extra:
+                self._current.extra["hover_start_s"] += paused_s
+        self._paused_at = None
+        self._state = State.RUNNING
+        if self._new_request is not None and self._new_request.kind is RequestKind.HOLD:
+            self._new_request = None  # the pause's hold was never delivered: drop it
+        self._emit(now_s, EventKind.MISSION_RESUMED, f"mission resumed after {paused_s:.1f} s")
+
+    def abort(self, now_s: float, reason: str = "operator abort") -> None:
+        """Any non-terminal state -> ABORTED: the vehicle holds where it is."""
+        if self._state in TERMINAL_STATES or self._state is State.IDLE:
+            raise MissionError(f"cannot abort: mission is {self._state.value}")
+        if self._current is not None:
+            self._finish(now_s, "aborted", reason)
+        self._state = State.ABORTED
+        self._issue(RequestKind.HOLD, None)
+        self._emit(now_s, EventKind.MISSION_ABORTED, f"mission aborted: {reason}; holding", "error")
+
+    def notify(self, request_id: int, ok: bool, now_s: float | None = None, message: str = "") -> bool:
+        """Report the completion of a discrete request; False if it is not the pending one."""
+        pending = self.pending_request
+        if pending is None or pending.id != request_id:
+            return False
+        assert self._current is not None
+        self._current.request_ok = bool(ok)
+        self._current.request_message = message
+        t = now_s if now_s is not None else (self._last_time_s if self._last_time_s is not None else 0.0)
+        self._emit(
+            t, EventKind.REQUEST_DONE, f"{pending.kind.value} {'done' if ok else 'failed'}"
+            + (f": {message}" if message else ""), "info" if ok else "error",
+        )
+        return True
+
+    # ------------------------------------------------------------------ the step
+    def step(self, now_s: float, nav: NavSnapshot) -> ExecutorOutput:
+        """Advance the state machine to now_s (s) with the latest navigation snapshot."""
+        now_s = float(now_s)
+        self._last_time_s = now_s
+        self._last_nav = nav
+        if self._home is None and self._state is not State.IDLE:
+            if nav.home_T_ned_body is not None:
+                self._home = check_transform(nav.home_T_ned_body, "nav.home_T_ned_body").copy()
+            elif nav.ok:
+                self._home = check_transform(nav.T_ned_body, "nav.T_ned_body").copy()
+        if self._state is State.RUNNING:
+            self._run(now_s, nav)
+        return self._output(now_s, nav)
+
+    def _run(self, now_s: float, nav: NavSnapshot) -> None:
+        if self._current is None:
+            self._start_next(now_s, nav)
+            if self._current is None:
+                return
+        cur = self._current
+        self._advance(cur, now_s, nav)
+        if self._current is not cur or self._state is not State.RUNNING:
+            return
+        outcome = self._evaluate(cur, now_s, nav)
+        if outcome is None:
+            if now_s - cur.started_s > cur.action.timeout_s:
+                self._fail(now_s, "timeout", f"timed out after {cur.action.timeout_s:g} s")
+            return
+        ok, message = outcome
+        if not ok:
+            self._fail(now_s, "failed", message)
+            return
+        self._finish(now_s, "succeeded", message)
+        if self._next_index >= len(self.mission.actions):
+            self._state = State.COMPLETED
+            if not nav.landed:
+                self._issue(RequestKind.HOLD, None)
+            self._emit(now_s, EventKind.MISSION_COMPLETED, f"mission '{self.mission.name}' completed")
+        else:
+            self._start_next(now_s, nav)
+
+    def _start_next(self, now_s: float, nav: NavSnapshot) -> None:
+        index = self._next_index
+        action = self.mission.actions[index]
+        self._next_index += 1
+        self._current = _Running(index=index, action=action, started_s=now_s, wall_started_s=now_s)
+        self._emit(now_s, EventKind.ACTION_STARTED, f"action {index + 1}/{len(self.mission.actions)} "
+                   f"{action.tag} '{action.id}' started")
+        self._advance(self._current, now_s, nav)
+
+    # ------------------------------------------------------------------ per action
+    def _advance(self, cur: _Running, now_s: float, nav: NavSnapshot) -> None:
+        """Resolve goals and issue requests for the current action (idempotent)."""
+        a = cur.action
+        if isinstance(a, Takeoff):
+            if cur.phase == "start":
+                if nav.armed and not nav.landed:
+                    cur.phase = "climb"  # already flying: climb/descend to the height with the servo
+                elif nav.armed:
+                    cur.phase = "takeoff"
+                else:
+                    cur.phase = "arm"
+                    cur.request = self._issue(RequestKind.ARM, cur)
+            if cur.phase == "arm" and cur.request_ok:
+                cur.phase = "takeoff"
+            if cur.phase == "takeoff" and (cur.request is None or cur.request.kind is RequestKind.ARM):
+                cur.request = self._issue(RequestKind.TAKEOFF, cur, height_m=a.height_m)
+                cur.request_ok = None
+            if cur.phase == "takeoff" and cur.request_ok:
+                cur.phase = "climb"
+            if cur.phase == "climb" and cur.goal is None and nav.ok and self._home is not None:
+                T = self._T(nav)
+                p = T[:3, 3].copy()
+                p[2] = self._home[2, 3] - a.height_m
+                cur.goal = self._goal(cur, self._flat(T, p), self.mission.speed_m_s, a.threshold_m,
+                                      self.mission.yaw_threshold_rad)
+        elif isinstance(a, Land):
+            if cur.phase == "start":
+                cur.phase = "landing"
+                if not (nav.landed and not nav.armed):
+                    cur.request = self._issue(RequestKind.LAND, cur)
+        elif isinstance(a, TakePhoto):
+            if cur.phase == "start":
+                cur.phase = "photo"
+                cur.request = self._issue(RequestKind.PHOTO, cur, camera=a.camera)
+            if cur.goal is None and nav.ok:
+                T = self._T(nav)
+                cur.goal = self._goal(cur, self._flat(T, T[:3, 3]), self.mission.speed_m_s,
+                                      self.mission.threshold_m, self.mission.yaw_threshold_rad)
+        elif cur.goal is None and nav.ok:
+            cur.goal = self._resolve_motion_goal(cur, nav)
+            if isinstance(a, Hover) and cur.goal is not None:
+                cur.extra["hover_start_s"] = now_s
+
+    def _resolve_motion_goal(self, cur: _Running, nav: NavSnapshot) -> Goal | None:
+        a = cur.action
+        m = self.mission
+        T = self._T(nav)
+        p_ned = T[:3, 3].copy()
+        yaw_now = float(yaw_from_rotation(T[:3, :3]))
+        if isinstance(a, Hover):
+            return self._goal(cur, self._flat(T, p_ned), m.speed_m_s, m.threshold_m, m.yaw_threshold_rad)
+        if isinstance(a, Home):
+            if self._home is None:
+                return None
+            p = np.array([self._home[0, 3], self._home[1, 3], p_ned[2]])
+            return self._goal(cur, self._flat(T, p), a.speed_m_s, a.threshold_m, m.yaw_threshold_rad)
+        if isinstance(a, GotoXY):
+            if m.frame is Frame.NED:
+                p = np.array([a.x_m, a.y_m, p_ned[2]])
+                yaw = yaw_now if a.yaw_rad is None else a.yaw_rad
+            else:
+                T_ned_rack = self._T_ned_rack()
+                p_rack = se3.act(se3.inverse(T_ned_rack), p_ned)
+                p = se3.act(T_ned_rack, np.array([a.x_m, a.y_m, p_rack[2]]))
+                yaw = yaw_now if a.yaw_rad is None else self._ned_yaw_from_rack_yaw(a.yaw_rad, T_ned_rack)
+            return self._goal(cur, se3.make(_heading_rotation(yaw), p), a.speed_m_s, a.threshold_m,
+                              a.yaw_threshold_rad)
+        if isinstance(a, GotoZ):
+            if a.height_m is not None:
+                if self._home is None:
+                    return None
+                p = np.array([p_ned[0], p_ned[1], self._home[2, 3] - a.height_m])
+            elif m.frame is Frame.NED:
+                p = np.array([p_ned[0], p_ned[1], float(a.z_m if a.z_m is not None else p_ned[2])])
+            else:
+                T_ned_rack = self._T_ned_rack()
+                p_rack = se3.act(se3.inverse(T_ned_rack), p_ned)
+                p_rack[2] = float(a.z_m if a.z_m is not None else p_rack[2])
+                p = se3.act(T_ned_rack, p_rack)
+            return self._goal(cur, self._flat(T, p), a.speed_m_s, a.threshold_m, m.yaw_threshold_rad)
+        if isinstance(a, Servo):
+            assert self.rack is not None
+            T_ned_rack = self._T_ned_rack()
+            p_rack = np.array(
+                [self.rack.pipe_axis_x_m(a.pipe), a.y_m, self.rack.pipe_top_z_m(a.pipe) + a.height_m]
+            )
+            yaw = self._ned_yaw_from_rack_yaw(a.yaw_rad, T_ned_rack)
+            return self._goal(cur, se3.make(_heading_rotation(yaw), se3.act(T_ned_rack, p_rack)),
+                              a.speed_m_s, a.threshold_m, a.yaw_threshold_rad)
+        return None
+
+    def _evaluate(self, cur: _Running, now_s: float, nav: NavSnapshot) -> tuple[bool, str] | None:
+        """None while running, (True, msg) on success, (False, msg) on failure."""
+        a = cur.action
+        if cur.request is not None and cur.request_ok is False:
+            detail = f": {cur.request_message}" if cur.request_message else ""
+            return False, f"{cur.request.kind.value} failed{detail}"
+        if isinstance(a, Land):
+            if nav.landed and (cur.request is None or cur.request_ok):
+                return True, "landed"
+            return None
+        if isinstance(a, TakePhoto):
+            return (True, "photo taken") if cur.request_ok else None
+        if isinstance(a, Hover):
+            start = cur.extra.get("hover_start_s")
+            if start is not None and now_s - float(start) >= a.duration_s - _TIME_EPS_S:
+                return True, f"hovered {a.duration_s:g} s"
+            return None
+        if isinstance(a, Takeoff) and cur.phase != "climb":
+            return None
+        if cur.goal is None or not nav.ok:
+            cur.within_since_s = None
+            return None
+        dist, yaw_err = self._errors(cur.goal, nav)
+        if dist <= cur.goal.threshold_m and abs(yaw_err) <= cur.goal.yaw_threshold_rad:
+            if cur.within_since_s is None:
+                cur.within_since_s = now_s
+            if now_s - cur.within_since_s >= self.mission.settle_s - _TIME_EPS_S:
+                return True, f"reached within {dist:.2f} m"
+        else:
+            cur.within_since_s = None
+        return None
+
+    # ------------------------------------------------------------------ helpers
+    def _T(self, nav: NavSnapshot) -> FloatArray:
+        return check_transform(nav.T_ned_body, "nav.T_ned_body")
+
+    def _T_ned_rack(self) -> FloatArray:
+        src = self._T_ned_rack_source
+        return check_transform(src() if callable(src) else src, "T_ned_rack")
+
+    @staticmethod
+    def _flat(T_ned_body: FloatArray, p_ned: FloatArray) -> FloatArray:
+        """Pose at p_ned with the heading of T_ned_body and no roll/pitch."""
+        return se3.make(_heading_rotation(float(yaw_from_rotation(T_ned_body[:3, :3]))), p_ned)
+
+    @staticmethod
+    def _ned_yaw_from_rack_yaw(yaw_rack_rad: float, T_ned_rack: FloatArray) -> float:
+        """Rack heading (from rack +y toward +x) to NED heading (from north toward east)."""
+        d_rack = np.array([math.sin(yaw_rack_rad), math.cos(yaw_rack_rad), 0.0])
+        d_ned = T_ned_rack[:3, :3] @ d_rack
+        return math.atan2(float(d_ned[1]), float(d_ned[0]))
+
+    def _goal(self, cur: _Running, T_goal: FloatArray, speed: float, thr: float, yaw_thr: float) -> Goal:
+        return Goal(T_ned_body_goal=T_goal, max_speed_m_s=speed, threshold_m=thr, yaw_threshold_rad=yaw_thr,
+                    action_index=cur.index, action_id=cur.action.id)
+
+    @staticmethod
+    def _errors(goal: Goal, nav: NavSnapshot) -> tuple[float, float]:
+        T = nav.T_ned_body
+        dist = float(np.linalg.norm(goal.T_ned_body_goal[:3, 3] - T[:3, 3]))
+        yaw_err = float(wrap_angle(yaw_from_rotation(goal.T_ned_body_goal[:3, :3]) - yaw_from_rotation(T[:3, :3])))
+        return dist, yaw_err
+
+    def _issue(self, kind: RequestKind, cur: _Running | None, height_m: float | None = None,
+               camera: str | None = None) -> Request:
+        self._request_counter += 1
+        req = Request(
+            id=self._request_counter, kind=kind,
+            action_index=None if cur is None else cur.index,
+            action_id=None if cur is None else cur.action.id,
+            height_m=height_m, camera=camera,
+        )
+        self._new_request = req  # a later request replaces an undelivered one
+        return req
+
+    def _finish(self, now_s: float, result: str, message: str) -> None:
+        cur = self._current
+        assert cur is not None
+        self._results.append(ActionResult(
+            index=cur.index, action_id=cur.action.id, action=cur.action.tag, result=result,
+            started_s=cur.wall_started_s, ended_s=float(now_s), message=message,
+            T_ned_body_goal=None if cur.goal is None else cur.goal.T_ned_body_goal,
+        ))
+        if result == "succeeded":
+            self._emit(now_s, EventKind.ACTION_SUCCEEDED, f"action {cur.index + 1} {cur.action.tag} "
+                       f"'{cur.action.id}' succeeded: {message}", action=cur)
+        else:
+            self._emit(now_s, EventKind.ACTION_FAILED, f"action {cur.index + 1} {cur.action.tag} "
+                       f"'{cur.action.id}' {result}: {message}", "error", action=cur)
+        self._current = None
+
+    def _fail(self, now_s: float, result: str, message: str) -> None:
+        cur = self._current
+        assert cur is not None
+        label = f"action {cur.index + 1} {cur.action.tag} '{cur.action.id}' {result}"
+        self._finish(now_s, result, message)
+        self._state = State.FAILED
+        self._issue(RequestKind.HOLD, None)
+        self._emit(now_s, EventKind.MISSION_FAILED, f"mission aborted ({label}): holding", "error")
+
+    def _emit(self, now_s: float, kind: EventKind, message: str, severity: str = "info",
+              action: _Running | None = None) -> None:
+        self._events.append(MissionEvent(
+            time_s=float(now_s), kind=kind, message=message, severity=severity,
+            action_index=None if action is None else action.index,
+            action_id=None if action is None else action.action.id,
+        ))
+
+    def _progress(self, now_s: float, nav: NavSnapshot) -> Progress | None:
+        cur = self._current
+        if cur is None:
+            return None
+        a = cur.action
+        end_s = self._paused_at if self._state is State.PAUSED and self._paused_at is not None else now_s
+        elapsed = end_s - cur.started_s
+        dist: float | None = None
+        yaw_err: float | None = None
+        eta: float | None = None
+        if cur.goal is not None and nav.ok:
+            dist, yaw_err = self._errors(cur.goal, nav)
+            eta = max(dist / cur.goal.max_speed_m_s, abs(yaw_err) / self._reference_yaw_rate)
+        if isinstance(a, Hover):
+            start = cur.extra.get("hover_start_s")
+            eta = a.duration_s - (end_s - float(start)) if start is not None else a.duration_s
+            eta = max(0.0, eta)
+        return Progress(index=cur.index, count=len(self.mission.actions), action=a.tag, action_id=a.id,
+                        elapsed_s=elapsed, timeout_s=a.timeout_s, distance_m=dist, yaw_error_rad=yaw_err,
+                        eta_s=eta)
+
+    def _output(self, now_s: float, nav: NavSnapshot) -> ExecutorOutput:
+        goal = None
+        if self._state is State.RUNNING and self._current is not None:
+            goal = self._current.goal
+        hold = self._state in (State.PAUSED, State.FAILED, State.ABORTED) or (
+            self._state is State.COMPLETED and not nav.landed
+        )
+        request, self._new_request = self._new_request, None
+        if request is not None:
+            self._events.append(MissionEvent(
+                time_s=now_s, kind=EventKind.REQUEST,
+                message=f"request {request.kind.value}"
+                + (f" {request.height_m:g} m" if request.height_m is not None else "")
+                + (f" camera {request.camera}" if request.camera is not None else ""),
+                action_index=request.action_index, action_id=request.action_id,
+            ))
+        events, self._events = tuple(self._events), []
+        return ExecutorOutput(time_s=now_s, state=self._state, goal=goal, request=request,
+                              pending_request=self.pending_request, hold=hold,
+                              progress=self._progress(now_s, nav), events=events)
