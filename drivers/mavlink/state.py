@@ -1,0 +1,421 @@
+"""Typed, SI-unit view of the autopilot, decoded at the link boundary.
+
+Every MAVLink unit and convention is converted here and nowhere else: millivolts, centimetres,
+milli-g, degE7, quaternion order (MAVLink is w, x, y, z), Euler angles (ZYX, R_ned_body =
+Rz(yaw) Ry(pitch) Rx(roll)), autopilot microseconds (mapped to our monotonic clock through
+TIMESYNC once it converged). `StateTracker` is a synchronous state machine fed with decoded
+messages and the local receive time; `VehicleState` is its frozen snapshot.
+
+IMU messages become `companion.estimation.ImuSample` (stamp on our clock, body FRD gyro and
+specific force); non-finite samples are dropped and counted (``StateTracker.rejected_imu``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray, check_transform
+from companion.errors import InputError
+from companion.estimation import ImuSample
+from companion.geometry import frames
+from drivers.mavlink.profiles import AutopilotProfile, profile_for_autopilot
+from drivers.mavlink.timesync import TimeSync
+
+__all__ = ["ImuSample", "PoseOut", "SimTruth", "StateTracker", "VehicleState"]
+
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_TYPE_GCS = 6
+MAV_AUTOPILOT_INVALID = 8
+# Vehicle types that never are the flight controller we talk to.
+_NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41, 42, 43})
+MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing rangefinder
+G_M_S2 = 9.80665
+EARTH_RADIUS_M = 6378137.0
+UINT16_MAX = 65535
+
+
+def _ro(values: Any, shape: tuple[int, ...]) -> FloatArray:
+    arr = np.array(values, dtype=np.float64).reshape(shape)
+    arr.setflags(write=False)
+    return arr
+
+
+def _covariance(values: Any, n: int, name: str) -> FloatArray:
+    """An (n, n) covariance; NaN marks unknown entries, infinities are refused."""
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected a numeric ({n}, {n}) array") from exc
+    if arr.shape != (n, n):
+        raise InputError(f"{name}: expected shape ({n}, {n}), got {arr.shape}")
+    if np.any(np.isinf(arr)):
+        raise InputError(f"{name}: contains infinite values (use NaN for unknown)")
+    return _ro(arr, (n, n))
+
+
+@dataclass(frozen=True)
+class SimTruth:
+    """Simulator ground truth from SIM_STATE: pose of body in NED (4x4), NED velocity (m/s)."""
+
+    stamp_s: float
+    T_ned_body: FloatArray
+    velocity_ned_m_s: FloatArray
+
+
+@dataclass(frozen=True)
+class PoseOut:
+    """A vision pose estimate to send to the autopilot.
+
+    ``stamp_s``: capture time of the frame on the link's clock (s). ``T_ned_body``: 4x4 pose of
+    body (FRD) in the autopilot's local NED frame. ``pose_covariance``: 6x6, order x, y, z (m),
+    roll, pitch, yaw (rad); NaN entries mean unknown. ``velocity_ned_m_s`` (3,) and its 3x3
+    ``velocity_covariance`` are optional. ``reset_counter`` counts real discontinuities (any int;
+    wrapped to uint8 on the wire). ``quality_pct`` (0..100) is used by ODOMETRY; None derives it
+    from the position covariance. ``angular_rate_body_rad_s`` (3,) feeds ODOMETRY (NaN if None).
+    """
+
+    stamp_s: float
+    T_ned_body: FloatArray
+    pose_covariance: FloatArray
+    velocity_ned_m_s: FloatArray | None = None
+    velocity_covariance: FloatArray | None = None
+    reset_counter: int = 0
+    quality_pct: int | None = None
+    angular_rate_body_rad_s: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(float(self.stamp_s)):
+            raise InputError(f"PoseOut.stamp_s must be finite, got {self.stamp_s!r}")
+        object.__setattr__(self, "stamp_s", float(self.stamp_s))
+        T = check_transform(self.T_ned_body, "PoseOut.T_ned_body", tol=1e-4)
+        object.__setattr__(self, "T_ned_body", _ro(T, (4, 4)))
+        object.__setattr__(self, "pose_covariance", _covariance(self.pose_covariance, 6, "PoseOut.pose_covariance"))
+        if self.velocity_ned_m_s is not None:
+            v = np.asarray(self.velocity_ned_m_s, dtype=np.float64)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise InputError(f"PoseOut.velocity_ned_m_s must be 3 finite values, got shape {v.shape}")
+            object.__setattr__(self, "velocity_ned_m_s", _ro(v, (3,)))
+        if self.velocity_covariance is not None:
+            vc = _covariance(self.velocity_covariance, 3, "PoseOut.velocity_covariance")
+            object.__setattr__(self, "velocity_covariance", vc)
+        if self.angular_rate_body_rad_s is not None:
+            w = np.asarray(self.angular_rate_body_rad_s, dtype=np.float64)
+            if w.shape != (3,):
+                raise InputError(f"PoseOut.angular_rate_body_rad_s must have shape (3,), got {w.shape}")
+            object.__setattr__(self, "angular_rate_body_rad_s", _ro(w, (3,)))
+        if not isinstance(self.reset_counter, (int, np.integer)) or self.reset_counter < 0:
+            raise InputError(f"PoseOut.reset_counter must be an int >= 0, got {self.reset_counter!r}")
+        object.__setattr__(self, "reset_counter", int(self.reset_counter))
+        if self.quality_pct is not None and not 0 <= int(self.quality_pct) <= 100:
+            raise InputError(f"PoseOut.quality_pct must be in [0, 100], got {self.quality_pct!r}")
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Snapshot of what the autopilot told us, SI units; ``*_stamp_s`` are local receive times (s).
+
+    Vectors are read-only float64 arrays. None means "never received". ``landed_state`` is
+    "on_ground" | "in_air" | "takeoff" | "landing" (EXTENDED_SYS_STATE).
+    """
+
+    autopilot: str | None = None
+    autopilot_system_id: int | None = None
+    autopilot_component_id: int | None = None
+    vehicle_type: int | None = None
+    armed: bool = False
+    mode: str | None = None
+    custom_mode: int | None = None
+    system_status: int | None = None
+    landed_state: str | None = None
+    last_autopilot_heartbeat_s: float | None = None
+    last_gcs_heartbeat_s: float | None = None
+    gcs_system_id: int | None = None
+    attitude_rpy_rad: FloatArray | None = None
+    angular_rate_body_rad_s: FloatArray | None = None
+    R_ned_body: FloatArray | None = None
+    attitude_stamp_s: float | None = None
+    position_ned_m: FloatArray | None = None
+    velocity_ned_m_s: FloatArray | None = None
+    local_position_stamp_s: float | None = None
+    battery_voltage_v: float | None = None
+    battery_current_a: float | None = None
+    battery_remaining_pct: float | None = None
+    battery_stamp_s: float | None = None
+    rangefinder_m: float | None = None
+    rangefinder_stamp_s: float | None = None
+    ekf_flags: int | None = None
+    ekf_stamp_s: float | None = None
+    ekf_origin_set: bool = False
+    ekf_origin_lat_deg: float | None = None
+    ekf_origin_lon_deg: float | None = None
+    ekf_origin_alt_m: float | None = None
+    last_imu: ImuSample | None = None
+    sim_truth: SimTruth | None = None
+
+    @property
+    def height_m(self) -> float | None:
+        """Height above the EKF origin (-z NED, m), None without a local position."""
+        return None if self.position_ned_m is None else float(-self.position_ned_m[2])
+
+
+class StateTracker:
+    """Folds decoded MAVLink messages into a `VehicleState` (synchronous, no I/O, no clock).
+
+    ``system_id``: accept only this autopilot system id (None = lock onto the first autopilot
+    heartbeat). ``origin_deg``: (lat, lon, alt_m) used to turn SIM_STATE into NED until the
+    autopilot confirms its EKF origin. ``timesync`` maps autopilot microseconds to local time.
+    """
+
+    def __init__(
+        self,
+        *,
+        system_id: int | None = None,
+        origin_deg: tuple[float, float, float] | None = None,
+        timesync: TimeSync | None = None,
+        forced_profile: AutopilotProfile | None = None,
+    ) -> None:
+        self._fixed_sysid = system_id
+        self._origin = origin_deg
+        self._timesync = timesync or TimeSync()
+        self._forced_profile = forced_profile
+        self.profile: AutopilotProfile | None = forced_profile
+        self._f: dict[str, Any] = {}
+        self._snapshot: VehicleState | None = None
+        self.ignored_messages = 0
+        self.rejected_imu = 0
+
+    # -- identity -------------------------------------------------------------------------
+    @property
+    def autopilot_address(self) -> tuple[int, int] | None:
+        """(system id, component id) of the autopilot once its heartbeat was seen."""
+        sysid = self._f.get("autopilot_system_id")
+        compid = self._f.get("autopilot_component_id")
+        return None if sysid is None or compid is None else (int(sysid), int(compid))
+
+    def _set(self, **values: Any) -> None:
+        self._f.update(values)
+        self._snapshot = None
+
+    def snapshot(self) -> VehicleState:
+        """The current frozen state (cached until the next change)."""
+        if self._snapshot is None:
+            self._snapshot = VehicleState(**self._f)
+        return self._snapshot
+
+    def _is_autopilot_heartbeat(self, msg: Any) -> bool:
+        if msg.type in _NON_AUTOPILOT_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return False
+        sysid = msg.get_srcSystem()
+        if self._fixed_sysid is not None and sysid != self._fixed_sysid:
+            return False
+        known = self.autopilot_address
+        return known is None or known == (sysid, msg.get_srcComponent())
+
+    def _from_autopilot(self, msg: Any) -> bool:
+        return self.autopilot_address == (msg.get_srcSystem(), msg.get_srcComponent())
+
+    # -- decoding -------------------------------------------------------------------------
+    def apply(self, msg: Any, now_s: float) -> ImuSample | None:
+        """Fold one decoded message received at local time ``now_s``; returns an IMU sample if it was one."""
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
+            self._heartbeat(msg, now_s)
+            return None
+        if not self._from_autopilot(msg):
+            self.ignored_messages += 1
+            return None
+        handler = _HANDLERS.get(kind)
+        if handler is None:
+            return None
+        result = handler(self, msg, now_s)
+        return result if isinstance(result, ImuSample) else None
+
+    def _heartbeat(self, msg: Any, now_s: float) -> None:
+        if msg.type == MAV_TYPE_GCS:
+            self._set(last_gcs_heartbeat_s=now_s, gcs_system_id=msg.get_srcSystem())
+            return
+        if not self._is_autopilot_heartbeat(msg):
+            self.ignored_messages += 1
+            return
+        profile = self._forced_profile or profile_for_autopilot(msg.autopilot) or self.profile
+        self.profile = profile
+        self._set(
+            autopilot=None if profile is None else profile.name,
+            autopilot_system_id=msg.get_srcSystem(),
+            autopilot_component_id=msg.get_srcComponent(),
+            vehicle_type=int(msg.type),
+            armed=bool(msg.base_mode & MAV_MODE_FLAG_SAFETY_ARMED),
+            custom_mode=int(msg.custom_mode),
+            mode=None if profile is None else profile.mode_name(int(msg.custom_mode)),
+            system_status=int(msg.system_status),
+            last_autopilot_heartbeat_s=now_s,
+        )
+
+    def _attitude(self, msg: Any, now_s: float) -> None:
+        rpy = (msg.roll, msg.pitch, msg.yaw)
+        self._set(
+            attitude_rpy_rad=_ro(rpy, (3,)),
+            angular_rate_body_rad_s=_ro((msg.rollspeed, msg.pitchspeed, msg.yawspeed), (3,)),
+            R_ned_body=_ro(frames.rotation_from_euler_zyx(*rpy), (3, 3)),
+            attitude_stamp_s=now_s,
+        )
+
+    def _attitude_quaternion(self, msg: Any, now_s: float) -> None:
+        q_wxyz = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64)
+        norm = float(np.linalg.norm(q_wxyz))
+        if not math.isfinite(norm) or norm < 1e-6:
+            return
+        R = frames.rotation_from_quaternion_wxyz(q_wxyz / norm)
+        self._set(
+            attitude_rpy_rad=_ro(frames.euler_zyx_from_rotation(R), (3,)),
+            angular_rate_body_rad_s=_ro((msg.rollspeed, msg.pitchspeed, msg.yawspeed), (3,)),
+            R_ned_body=_ro(R, (3, 3)),
+            attitude_stamp_s=now_s,
+        )
+
+    def _local_position(self, msg: Any, now_s: float) -> None:
+        self._set(
+            position_ned_m=_ro((msg.x, msg.y, msg.z), (3,)),
+            velocity_ned_m_s=_ro((msg.vx, msg.vy, msg.vz), (3,)),
+            local_position_stamp_s=now_s,
+        )
+
+    def _sys_status(self, msg: Any, now_s: float) -> None:
+        values: dict[str, Any] = {"battery_stamp_s": now_s}
+        if msg.voltage_battery != UINT16_MAX:
+            values["battery_voltage_v"] = msg.voltage_battery * 1e-3
+        if msg.current_battery >= 0:
+            values["battery_current_a"] = msg.current_battery * 1e-2
+        if msg.battery_remaining >= 0:
+            values["battery_remaining_pct"] = float(msg.battery_remaining)
+        self._set(**values)
+
+    def _battery_status(self, msg: Any, now_s: float) -> None:
+        if msg.id != 0:
+            return
+        values: dict[str, Any] = {"battery_stamp_s": now_s}
+        cells = [v for v in msg.voltages if v != UINT16_MAX]
+        cells += [v for v in (getattr(msg, "voltages_ext", None) or []) if v not in (0, UINT16_MAX)]
+        if cells:
+            values["battery_voltage_v"] = sum(cells) * 1e-3
+        if msg.current_battery >= 0:
+            values["battery_current_a"] = msg.current_battery * 1e-2
+        if msg.battery_remaining >= 0:
+            values["battery_remaining_pct"] = float(msg.battery_remaining)
+        self._set(**values)
+
+    def _distance_sensor(self, msg: Any, now_s: float) -> None:
+        if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
+            return
+        distance_cm = int(msg.current_distance)
+        valid = msg.min_distance <= distance_cm <= msg.max_distance and distance_cm != UINT16_MAX
+        self._set(rangefinder_m=distance_cm * 1e-2 if valid else None, rangefinder_stamp_s=now_s)
+
+    def _extended_sys_state(self, msg: Any, now_s: float) -> None:
+        self._set(landed_state=_LANDED_STATES.get(int(msg.landed_state)))
+
+    def _ekf_status(self, msg: Any, now_s: float) -> None:
+        self._set(ekf_flags=int(msg.flags), ekf_stamp_s=now_s)
+
+    def _gps_global_origin(self, msg: Any, now_s: float) -> None:
+        self._set(
+            ekf_origin_set=True,
+            ekf_origin_lat_deg=msg.latitude * 1e-7,
+            ekf_origin_lon_deg=msg.longitude * 1e-7,
+            ekf_origin_alt_m=msg.altitude * 1e-3,
+        )
+
+    def _imu_stamp(self, time_usec: int, now_s: float) -> float:
+        local = self._timesync.to_local_s(time_usec * 1e-6)
+        return now_s if local is None else local
+
+    def _imu(
+        self, stamp_s: float, gyro: tuple[float, float, float], accel: tuple[float, float, float]
+    ) -> ImuSample | None:
+        values = (*gyro, *accel)
+        if not all(math.isfinite(v) for v in values):
+            self.rejected_imu += 1
+            return None
+        sample = ImuSample(stamp_s=stamp_s, gyro_rad_s=_ro(gyro, (3,)), accel_m_s2=_ro(accel, (3,)))
+        self._set(last_imu=sample)
+        return sample
+
+    def _highres_imu(self, msg: Any, now_s: float) -> ImuSample | None:
+        return self._imu(
+            self._imu_stamp(int(msg.time_usec), now_s),
+            (msg.xgyro, msg.ygyro, msg.zgyro),
+            (msg.xacc, msg.yacc, msg.zacc),
+        )
+
+    def _scaled_imu(self, msg: Any, now_s: float) -> ImuSample | None:
+        return self._imu(
+            self._imu_stamp(int(msg.time_boot_ms) * 1000, now_s),
+            (msg.xgyro * 1e-3, msg.ygyro * 1e-3, msg.zgyro * 1e-3),
+            (msg.xacc * G_M_S2e3, msg.yacc * G_M_S2e3, msg.zacc * G_M_S2e3),
+        )
+
+    def _sim_state(self, msg: Any, now_s: float) -> None:
+        origin = self._origin_deg()
+        if origin is None:
+            return
+        lat0, lon0, alt0 = origin
+        lat = msg.lat_int * 1e-7 if msg.lat_int != 0 else float(msg.lat)
+        lon = msg.lon_int * 1e-7 if msg.lon_int != 0 else float(msg.lon)
+        p_ned = ned_from_geodetic(lat, lon, float(msg.alt), lat0, lon0, alt0)
+        q_wxyz = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=np.float64)
+        norm = float(np.linalg.norm(q_wxyz))
+        if not math.isfinite(norm) or norm < 1e-6:
+            R = frames.rotation_from_euler_zyx(msg.roll, msg.pitch, msg.yaw)
+        else:
+            R = frames.rotation_from_quaternion_wxyz(q_wxyz / norm)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = p_ned
+        truth = SimTruth(stamp_s=now_s, T_ned_body=_ro(T, (4, 4)), velocity_ned_m_s=_ro((msg.vn, msg.ve, msg.vd), (3,)))
+        self._set(sim_truth=truth)
+
+    def _origin_deg(self) -> tuple[float, float, float] | None:
+        if self._f.get("ekf_origin_set"):
+            return (self._f["ekf_origin_lat_deg"], self._f["ekf_origin_lon_deg"], self._f["ekf_origin_alt_m"])
+        return self._origin
+
+
+G_M_S2e3 = G_M_S2 * 1e-3  # milli-g to m/s^2
+_LANDED_STATES = {1: "on_ground", 2: "in_air", 3: "takeoff", 4: "landing"}  # MAV_LANDED_STATE
+
+
+def ned_from_geodetic(
+    lat_deg: float, lon_deg: float, alt_m: float, lat0_deg: float, lon0_deg: float, alt0_m: float
+) -> FloatArray:
+    """Flat-earth (equirectangular) NED offset (m) of a geodetic point from an origin; fine over a few km."""
+    north = math.radians(lat_deg - lat0_deg) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - lon0_deg) * EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))
+    return np.array([north, east, alt0_m - alt_m], dtype=np.float64)
+
+
+def geodetic_from_ned(p_ned_m: Any, lat0_deg: float, lon0_deg: float, alt0_m: float) -> tuple[float, float, float]:
+    """Inverse of `ned_from_geodetic`: (lat_deg, lon_deg, alt_m)."""
+    n, e, d = (float(x) for x in np.asarray(p_ned_m, dtype=np.float64).reshape(3))
+    lat = lat0_deg + math.degrees(n / EARTH_RADIUS_M)
+    lon = lon0_deg + math.degrees(e / (EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))))
+    return lat, lon, alt0_m - d
+
+
+_HANDLERS: dict[str, Any] = {
+    "ATTITUDE": StateTracker._attitude,
+    "ATTITUDE_QUATERNION": StateTracker._attitude_quaternion,
+    "LOCAL_POSITION_NED": StateTracker._local_position,
+    "SYS_STATUS": StateTracker._sys_status,
+    "BATTERY_STATUS": StateTracker._battery_status,
+    "DISTANCE_SENSOR": StateTracker._distance_sensor,
+    "EKF_STATUS_REPORT": StateTracker._ekf_status,
+    "EXTENDED_SYS_STATE": StateTracker._extended_sys_state,
+    "GPS_GLOBAL_ORIGIN": StateTracker._gps_global_origin,
+    "HIGHRES_IMU": StateTracker._highres_imu,
+    "SCALED_IMU": StateTracker._scaled_imu,
+    "SIM_STATE": StateTracker._sim_state,
+}
