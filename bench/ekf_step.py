@@ -73,8 +73,9 @@ def one_run(seed: int, seconds: float, delay_s: float) -> dict[str, float]:
             t0 = clock()
             f.add_range(float(ranges[j]), float(t_cam[j]) + 1e-4)
             times["range"].append(clock() - t0)
+            dx_m, dy_m, dyaw_rad = (float(v) for v in incs[j])
             t0 = clock()
-            g.add_relative_pose(float(t_cam[j]), *incs[j].tolist(), GROUND_COV, restart=(j == 0))
+            g.add_relative_pose(float(t_cam[j]), dx_m, dy_m, dyaw_rad, GROUND_COV, restart=(j == 0))
             times["ground"].append(clock() - t0)
             j += 1
     # (a rare frame may be gated at p = 0.999; the update was still computed and timed)

@@ -405,6 +405,10 @@ class SafetyLimits(_Section):
             raise self._fail("battery_critical_pct", f"must be <= safety.battery_low_pct ({self.battery_low_pct:g})")
         if self.gcs_loss_land_s < self.gcs_loss_hover_s:
             raise self._fail("gcs_loss_land_s", f"must be >= safety.gcs_loss_hover_s ({self.gcs_loss_hover_s:g})")
+        if 0 < self.vision_loss_land_s * 1000.0 < self.vision_loss_hover_ms:
+            raise self._fail(
+                "vision_loss_land_s", f"must be >= safety.vision_loss_hover_ms ({self.vision_loss_hover_ms:g} ms)"
+            )
         if (self.geofence_min_ned_m is None) != (self.geofence_max_ned_m is None):
             raise self._fail("geofence_max_ned_m", "geofence_min_ned_m and geofence_max_ned_m go together")
         lo_ned, hi_ned = self.geofence_min_ned_m, self.geofence_max_ned_m

@@ -149,3 +149,22 @@ async def test_malformed_missions_are_rejected_with_422_and_not_stored(tmp_path:
         assert name in rejected.value.message  # the validator's message names the file (and line/field)
         assert await client.list_missions() == []
     assert stored(tmp_path) == []
+
+
+async def test_vehicle_limits_given_to_the_validator_are_enforced_on_upload(tmp_path: Path) -> None:
+    from companion.mission import MissionLimits
+
+    store = tmp_path / "missions"
+    server = ApiServer(
+        ApiConfig(port=0),
+        store_dir=store,
+        validate=default_validator(MissionLimits(ceiling_m=2.0)),
+        controller=RecordingController(store),
+        status_provider=dict,
+    )
+    async with server, ApiClient(server.url) as client:
+        with pytest.raises(ApiError) as rejected:
+            await client.upload_file(EXAMPLES / "rack_sweep.xml")  # climbs to 2.5 m
+        assert rejected.value.status == 422 and "above the ceiling 2 m" in rejected.value.message
+        assert (await client.upload_file(EXAMPLES / "fig6.xml"))["id"] == "fig6"  # 1 m: fine
+    assert stored(tmp_path) == ["fig6.xml"]

@@ -31,10 +31,10 @@ from companion.geometry.frames import yaw_from_rotation
 __all__ = ["ServoController", "ServoGains", "ServoLaw", "flatten_to_yaw"]
 
 
-def _positive(value: float, name: str) -> float:
+def _positive(value: float, name: str, owner: str = "ServoGains") -> float:
     value = float(value)
     if not math.isfinite(value) or value <= 0.0:
-        raise InputError(f"ServoGains.{name} must be finite and > 0, got {value!r}")
+        raise InputError(f"{owner}.{name} must be finite and > 0, got {value!r}")
     return value
 
 
@@ -157,10 +157,19 @@ class ServoController:
     `update(T_ned_body, T_ned_body_goal, now_s)` returns the next command; `reset()` forgets the
     history (the next command starts from zero velocity, as after a hover); `hold(now_s)` records
     an explicit zero command (e.g. while the autopilot holds) so the next motion ramps up from rest.
+
+    The rate limit uses the time since the previous command, at most `max_step_s`; after a gap
+    longer than `max_gap_s` (a pause, a safety hold, a stalled loop: the vehicle was not following
+    the stale command) the next command ramps up from rest as after `reset()`, so no gap ever
+    lets a command jump by more than max_accel * max_step_s.
     """
 
-    def __init__(self, gains: ServoGains | None = None) -> None:
+    NOMINAL_STEP_S = 0.1  # step assumed for the first command from rest (s)
+
+    def __init__(self, gains: ServoGains | None = None, *, max_step_s: float = 0.2, max_gap_s: float = 0.5) -> None:
         self.law = ServoLaw(gains)
+        self.max_step_s = _positive(max_step_s, "max_step_s", "ServoController")
+        self.max_gap_s = _positive(max_gap_s, "max_gap_s", "ServoController")
         self._previous: VelocityCommand | None = None
         self._previous_s: float | None = None
 
@@ -184,14 +193,15 @@ class ServoController:
         self, T_ned_body: Any, T_ned_body_goal: Any, now_s: float, *, max_speed_m_s: float | None = None
     ) -> VelocityCommand:
         """Next rate-limited command at time now_s (s, monotonic)."""
-        previous = self._previous if self._previous is not None else VelocityCommand.zero()
-        dt_s = 0.0 if self._previous_s is None else max(0.0, float(now_s) - self._previous_s)
-        if self._previous_s is None:
-            # First command after a reset: allow one nominal 0.1 s step from rest.
-            dt_s = 0.1
+        now = float(now_s)
+        if self._previous is None or self._previous_s is None or now - self._previous_s > self.max_gap_s:
+            # First command from rest: one nominal step.
+            previous, dt_s = VelocityCommand.zero(), self.NOMINAL_STEP_S
+        else:
+            previous, dt_s = self._previous, min(max(0.0, now - self._previous_s), self.max_step_s)
         cmd = self.law.command(
             T_ned_body, T_ned_body_goal, max_speed_m_s=max_speed_m_s, dt_s=dt_s, previous=previous
         )
         self._previous = cmd
-        self._previous_s = float(now_s)
+        self._previous_s = now
         return cmd

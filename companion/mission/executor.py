@@ -273,6 +273,19 @@ class MissionExecutor:
                     )
                 if not 1 <= action.pipe <= self.rack.count:
                     raise MissionError(f"{where}: pipe {action.pipe} does not exist (the rack has {self.rack.count})")
+                # A rack passed here was not seen by the parser: check the goal height before flight too.
+                top_m = self.rack.pipe_top_z_m(action.pipe)
+                if top_m + action.height_m > mission.limits.ceiling_m:
+                    raise MissionError(
+                        f"{mission.source_name}:{action.line}: servo.height: goal height {top_m + action.height_m:g} m "
+                        f"(pipe top {top_m:g} m + {action.height_m:g} m) is above the ceiling "
+                        f"{mission.limits.ceiling_m:g} m"
+                    )
+                if not 0.0 <= action.y_m <= self.rack.length_m:
+                    raise MissionError(
+                        f"{mission.source_name}:{action.line}: servo.y: {action.y_m:g} m is off the pipes "
+                        f"(0..{self.rack.length_m:g} m)"
+                    )
         self._reference_yaw_rate = float(reference_yaw_rate_rad_s)
         self._state = State.IDLE
         self._current: _Running | None = None

@@ -8,11 +8,15 @@ Two entry points, both pure apart from the manager's own bookkeeping:
   plus `send_poses` (False while vision is stale: never forward a stale pose),
   `allow_commands` (mission velocity commands may pass) and the events of the decisions.
 - `filter(command, inputs, now_s)` -- every velocity command on its way to the autopilot. It
-  returns None when commanding is forbidden (override active or autopilot link lost) and
+  returns None when commanding is forbidden (override active, autopilot link lost, or no
+  watchdog `step` within `watchdog_stale_s`) and
   otherwise clamps the command: climbing near the ceiling (height above ground and, when an
   upward rangefinder exists, the measured clearance) and leaving the geofence box are limited
   by a proportional law v <= k * distance_to_limit, which also pushes the vehicle back in
-  when it is beyond a limit.
+  when it is beyond a limit. Unknown height: no climbing; unknown position with a geofence:
+  no translation. The climb limits are applied last and always win.
+
+Impossible readings (NaN/inf, a 0 V battery, a percentage outside 0..100) count as unknown.
 
 Priority when several faults hold at once: battery critical (LAND_NOW) > battery low (LAND) >
 GCS-loss or vision-loss land timeout (LAND) > GCS loss or vision loss (HOVER) > nothing.
@@ -29,7 +33,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -114,6 +118,8 @@ class SafetyConfig:
     autopilot_timeout_s: no autopilot heartbeat for this long -> STOP_COMMANDS.
     geofence_min_ned_m / geofence_max_ned_m: NED box (m) or None; velocities toward a face are
         limited to geofence_gain_per_s * distance to it.
+    watchdog_stale_s: `filter` blocks every command when the last `step` is older than this (s)
+        or `step` never ran: commands only pass while the watchdog is alive.
     """
 
     ceiling_m: float = 10.0
@@ -137,6 +143,7 @@ class SafetyConfig:
     geofence_min_ned_m: tuple[float, float, float] | None = None
     geofence_max_ned_m: tuple[float, float, float] | None = None
     geofence_gain_per_s: float = 1.0
+    watchdog_stale_s: float = 1.0
 
     def __post_init__(self) -> None:
         optional = {
@@ -176,6 +183,8 @@ class SafetyInputs:
     last_gcs_heartbeat_s, last_pose_s, last_autopilot_heartbeat_s: monotonic times (s) of the
     last GCS heartbeat, last fresh vision pose and last autopilot heartbeat;
     position_ned_m: (north, east, down) in m; armed, landed: from the autopilot.
+    Unknown altitude makes `filter` refuse any climb; unknown position with a geofence
+    configured makes it refuse any translation. NaN/inf readings count as unknown.
     """
 
     battery_v: float | None = None
@@ -232,7 +241,39 @@ def _fmt(value: float | None) -> str:
 
 
 def _age(now_s: float, last_s: float | None) -> float:
-    return math.inf if last_s is None else now_s - last_s
+    """Seconds since last_s; infinite when there is none or it is not a finite time."""
+    return math.inf if last_s is None or not math.isfinite(last_s) else now_s - last_s
+
+
+def _finite(value: float | None, lo: float = -math.inf, hi: float = math.inf) -> float | None:
+    """value as a float when it is a finite reading within [lo, hi], else None (unknown)."""
+    if value is None:
+        return None
+    x = float(value)
+    return x if math.isfinite(x) and lo <= x <= hi else None
+
+
+def _sanitized(inputs: SafetyInputs) -> SafetyInputs:
+    """The inputs with impossible readings turned into "unknown" (None).
+
+    NaN/inf anywhere, a battery voltage <= 0 V (an autopilot without a battery monitor reports
+    0), a percentage outside 0..100 and a negative ceiling clearance are not readings: treating
+    them as values would either trigger a false landing or silently disable a limit (NaN compares
+    false). Unknown altitude and position are then handled conservatively by `filter`.
+    """
+    pos: tuple[float, float, float] | None = None
+    if inputs.position_ned_m is not None:
+        p = np.asarray(inputs.position_ned_m, dtype=np.float64)
+        if p.shape == (3,) and bool(np.all(np.isfinite(p))):
+            pos = (float(p[0]), float(p[1]), float(p[2]))
+    return replace(
+        inputs,
+        battery_v=_finite(inputs.battery_v, lo=1e-6),
+        battery_pct=_finite(inputs.battery_pct, lo=0.0, hi=100.0),
+        altitude_m=_finite(inputs.altitude_m),
+        ceiling_clearance_m=_finite(inputs.ceiling_clearance_m, lo=0.0),
+        position_ned_m=pos,
+    )
 
 
 def _below(value: float | None, threshold: float | None) -> bool:
@@ -291,6 +332,7 @@ class SafetyManager:
         self._clamping: frozenset[Fault] = frozenset()
         self._blocked = False
         self._last_inputs: SafetyInputs | None = None
+        self._last_step_s: float | None = None
 
     # ------------------------------------------------------------------ watchdog
     @property
@@ -307,7 +349,9 @@ class SafetyManager:
         """Run the watchdog at now_s (s); call at about 10 Hz."""
         c = self.config
         now_s = float(now_s)
+        inputs = _sanitized(inputs)
         self._last_inputs = inputs
+        self._last_step_s = now_s
         faults: set[Fault] = set()
 
         # Battery: debounced, latched; the latch clears only once disarmed on a healthy battery.
@@ -500,13 +544,25 @@ class SafetyManager:
 
     # ------------------------------------------------------------------ filter
     def filter(self, command: VelocityCommand, inputs: SafetyInputs, now_s: float) -> VelocityCommand | None:
-        """The command to send (clamped), or None when commanding is forbidden."""
+        """The command to send (clamped), or None when commanding is forbidden.
+
+        Unknown (None or non-finite) altitude: no climbing at all. Geofence configured but the
+        position unknown: no translation at all (yaw only). The ceiling and clearance limits are
+        applied last, so no other limit can turn a command into a climb through them.
+        """
         c = self.config
         now_s = float(now_s)
+        inputs = _sanitized(inputs)
         autopilot_ok = _age(now_s, inputs.last_autopilot_heartbeat_s) <= c.autopilot_timeout_s
-        blocked = not autopilot_ok or self._action is not SafetyAction.NONE
+        watchdog_ok = _age(now_s, self._last_step_s) <= c.watchdog_stale_s
+        blocked = not autopilot_ok or not watchdog_ok or self._action is not SafetyAction.NONE
         if blocked != self._blocked:
-            why = "autopilot link lost" if not autopilot_ok else f"safety action {self._action.value}"
+            if not watchdog_ok:
+                why = "safety watchdog not running"
+            elif not autopilot_ok:
+                why = "autopilot link lost"
+            else:
+                why = f"safety action {self._action.value}"
             self._emit(now_s, "commands", f"mission commands blocked: {why}" if blocked else "mission commands allowed",
                        "warning" if blocked else "info")
             self._blocked = blocked
@@ -514,25 +570,28 @@ class SafetyManager:
             return None
         v = np.array([command.vx_m_s, command.vy_m_s, command.vz_m_s])
         clamping: set[Fault] = set()
-        # Ceiling: climb rate (-vz) <= k * room; pushes down when above.
-        if inputs.altitude_m is not None:
-            vz_min = -c.ceiling_gain_per_s * (c.ceiling_m - inputs.altitude_m)
-            if v[2] < vz_min:
-                v[2] = vz_min
-                clamping.add(Fault.CEILING)
+        # Geofence: velocity toward a face <= k * distance to it; pushes back in when outside.
+        if c.geofence_min_ned_m is not None and c.geofence_max_ned_m is not None:
+            if inputs.position_ned_m is None:
+                clipped = np.zeros(3)
+            else:
+                p = np.asarray(inputs.position_ned_m, dtype=np.float64)
+                hi = c.geofence_gain_per_s * (np.asarray(c.geofence_max_ned_m) - p)
+                lo = c.geofence_gain_per_s * (np.asarray(c.geofence_min_ned_m) - p)
+                clipped = np.minimum(np.maximum(v, lo), hi)
+            if np.any(clipped != v):
+                clamping.add(Fault.GEOFENCE)
+            v = clipped
+        # Ceiling: climb rate (-vz) <= k * room; pushes down when above; no climb when the height is unknown.
+        vz_min = 0.0 if inputs.altitude_m is None else -c.ceiling_gain_per_s * (c.ceiling_m - inputs.altitude_m)
+        if v[2] < vz_min:
+            v[2] = vz_min
+            clamping.add(Fault.CEILING)
         if inputs.ceiling_clearance_m is not None and c.min_ceiling_clearance_m is not None:
             vz_min = -c.ceiling_gain_per_s * (inputs.ceiling_clearance_m - c.min_ceiling_clearance_m)
             if v[2] < vz_min:
                 v[2] = vz_min
                 clamping.add(Fault.CEILING_CLEARANCE)
-        if c.geofence_min_ned_m is not None and c.geofence_max_ned_m is not None and inputs.position_ned_m is not None:
-            p = np.asarray(inputs.position_ned_m, dtype=np.float64)
-            hi = c.geofence_gain_per_s * (np.asarray(c.geofence_max_ned_m) - p)
-            lo = c.geofence_gain_per_s * (np.asarray(c.geofence_min_ned_m) - p)
-            clipped = np.minimum(np.maximum(v, lo), hi)
-            if np.any(clipped != v):
-                clamping.add(Fault.GEOFENCE)
-            v = clipped
         changed = frozenset(clamping)
         for fault in sorted(changed - self._clamping):
             self._emit(now_s, fault.value, f"{fault.value}: command clamped", "warning")

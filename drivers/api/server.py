@@ -41,6 +41,7 @@ _log = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
 _CHUNK_BYTES = 65536
+_MAX_PARTS = 8  # multipart parts looked at before the "file" field
 
 
 class MissionController(Protocol):
@@ -63,12 +64,16 @@ Validator = Callable[[bytes, str], Any]
 StatusProvider = Callable[[], "Mapping[str, Any] | Awaitable[Mapping[str, Any]]"]
 
 
-def default_validator() -> Validator:
-    """`companion.mission.parse_mission` as an upload validator (raises `MissionError`)."""
+def default_validator(limits: Any | None = None) -> Validator:
+    """`companion.mission.parse_mission` as an upload validator (raises `MissionError`).
+
+    `limits`: the vehicle's `companion.mission.MissionLimits` (ceiling, speed, ...); None uses
+    the parser's defaults, which need not match the configured safety limits.
+    """
     from companion.mission import parse_mission
 
     def validate(data: bytes, name: str) -> Any:
-        return parse_mission(data, source_name=name)
+        return parse_mission(data, source_name=name, limits=limits)
 
     return validate
 
@@ -76,7 +81,7 @@ def default_validator() -> Validator:
 def read_token_file(path: str | os.PathLike[str]) -> str:
     """The bearer token in `path` (whitespace stripped); `ConfigError` naming `api.token_file` otherwise.
 
-    The file must not be readable by other users (chmod 600 or 640).
+    The file must not be readable or writable by other users (chmod 600 or 640).
     """
     p = Path(path)
     try:
@@ -86,6 +91,8 @@ def read_token_file(path: str | os.PathLike[str]) -> str:
         raise ConfigError(f"api.token_file: cannot read {p}: {exc}") from exc
     if mode & stat.S_IROTH:
         raise ConfigError(f"api.token_file: {p} is readable by other users (chmod 600)")
+    if mode & stat.S_IWOTH:
+        raise ConfigError(f"api.token_file: {p} is writable by other users (chmod 600)")
     if len(token) < 16 or any(c.isspace() for c in token):
         raise ConfigError(f"api.token_file: {p} must hold one token of at least 16 characters")
     return token
@@ -269,18 +276,21 @@ class ApiServer:
 
     async def _read_upload(self, request: web.Request) -> tuple[bytes, str]:
         name = request.query.get("name", "")
-        if request.content_type.startswith("multipart/"):
+        limit = self.config.max_upload_bytes
+        multipart = request.content_type.startswith("multipart/")
+        # A declared length above the limit (plus the multipart envelope) is refused before reading.
+        if request.content_length is not None and request.content_length > limit + (_CHUNK_BYTES if multipart else 0):
+            raise _TooLarge
+        if multipart:
             reader = await request.multipart()
-            while True:
+            for _ in range(_MAX_PARTS):
                 part = await reader.next()
                 if part is None:
-                    raise web.HTTPBadRequest(reason='multipart upload needs a "file" field')
+                    break
                 if isinstance(part, BodyPartReader) and part.name == "file":
                     name = name or (part.filename or "")
                     return await self._read_part(part), name
-        limit = self.config.max_upload_bytes
-        if request.content_length is not None and request.content_length > limit:
-            raise _TooLarge
+            raise web.HTTPBadRequest(reason='multipart upload needs a "file" field')
         chunks: list[bytes] = []
         total = 0
         async for chunk in request.content.iter_chunked(_CHUNK_BYTES):

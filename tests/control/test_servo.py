@@ -18,6 +18,12 @@ def pose(x: float, y: float, z: float, yaw: float, roll: float = 0.0, pitch: flo
     return se3.make(rotation_from_euler_zyx(roll, pitch, yaw), np.array([x, y, z]))
 
 
+def random_pose(rng: np.random.Generator, xy_range: tuple[float, float], z_range: tuple[float, float],
+                yaw_range: tuple[float, float] = (-np.pi, np.pi)) -> np.ndarray:
+    x, y = rng.uniform(*xy_range, 2)
+    return pose(float(x), float(y), float(rng.uniform(*z_range)), float(rng.uniform(*yaw_range)))
+
+
 def integrate(T: np.ndarray, cmd: VelocityCommand, dt: float) -> np.ndarray:
     """Kinematic multirotor: NED velocity and yaw rate integrated exactly over dt (roll = pitch = 0)."""
     yaw = float(yaw_from_rotation(T[:3, :3])) + cmd.yaw_rate_rad_s * dt
@@ -43,8 +49,8 @@ def test_pure_translation_points_at_goal_in_ned() -> None:
 def test_saturation_keeps_direction_and_limits(rng: np.random.Generator) -> None:
     law = ServoLaw()  # paper defaults: 0.5 m/s, 0.2 rad/s
     for _ in range(200):
-        T = pose(*rng.uniform(-20, 20, 3), rng.uniform(-np.pi, np.pi))
-        T_goal = pose(*rng.uniform(-20, 20, 3), rng.uniform(-np.pi, np.pi))
+        T = random_pose(rng, (-20, 20), (-20, 20))
+        T_goal = random_pose(rng, (-20, 20), (-20, 20))
         cmd = law.command(T, T_goal)
         v = np.array([cmd.vx_m_s, cmd.vy_m_s, cmd.vz_m_s])
         assert np.linalg.norm(v) <= 0.5 + 1e-12
@@ -86,8 +92,8 @@ def test_closed_loop_converges_from_seeded_arbitrary_starts(rng: np.random.Gener
     law = ServoLaw()
     dt = 0.1
     for _ in range(10):
-        T = pose(*rng.uniform(-5, 5, 2), rng.uniform(-4, -0.5), rng.uniform(-np.pi, np.pi))
-        T_goal = pose(*rng.uniform(-5, 5, 2), rng.uniform(-4, -0.5), rng.uniform(-np.pi, np.pi))
+        T = random_pose(rng, (-5, 5), (-4, -0.5))
+        T_goal = random_pose(rng, (-5, 5), (-4, -0.5))
         previous = VelocityCommand.zero()
         for _ in range(int(60 / dt)):
             previous = law.command(T, T_goal, dt_s=dt, previous=previous)
@@ -138,6 +144,21 @@ def test_controller_ramps_up_from_rest_and_resets() -> None:
     assert ctl.previous is None
 
 
+def test_controller_gap_restarts_from_rest_and_steps_are_bounded() -> None:
+    """A pause (no commands while the autopilot held) never lets the next command jump to the stale one."""
+    ctl = ServoController(ServoGains(max_accel_m_s2=1.0))
+    T, T_goal = pose(0, 0, -2, 0), pose(10, 0, -2, 0)
+    for k in range(10):
+        cmd = ctl.update(T, T_goal, now_s=0.1 * k)
+    assert cmd.vx_m_s == pytest.approx(0.5)
+    # 30 s later (pause, safety hold), heading the other way: ramps from rest, not from +0.5 m/s.
+    after = ctl.update(T, pose(-10, 0, -2, 0), now_s=30.0)
+    assert after.vx_m_s == pytest.approx(-0.1)
+    # A late but short gap (0.4 s) is rate limited over at most max_step_s = 0.2 s.
+    late = ctl.update(T, T_goal, now_s=30.4)
+    assert late.vx_m_s == pytest.approx(-0.1 + 0.2)
+
+
 def test_bad_gains_and_inputs_rejected() -> None:
     with pytest.raises(InputError, match="max_speed_m_s"):
         ServoGains(max_speed_m_s=0.0)
@@ -161,8 +182,14 @@ def test_log_jacobians_match_central_differences(rng: np.random.Generator) -> No
     for _ in range(10):
         xi = random_twist(rng)
         T = se3.exp(xi)
-        J_r_num = central_jacobian(lambda d, T=T: se3.log(T @ se3.exp(d)), np.zeros(6))
-        J_l_num = central_jacobian(lambda d, T=T: se3.log(se3.exp(d) @ T), np.zeros(6))
+        def right(d: np.ndarray, T: np.ndarray = T) -> np.ndarray:
+            return se3.log(T @ se3.exp(d))
+
+        def left(d: np.ndarray, T: np.ndarray = T) -> np.ndarray:
+            return se3.log(se3.exp(d) @ T)
+
+        J_r_num = central_jacobian(right, np.zeros(6))
+        J_l_num = central_jacobian(left, np.zeros(6))
         assert np.allclose(J_r_num, se3.right_jacobian_inverse(xi), atol=1e-6)
         assert np.allclose(J_l_num, se3.left_jacobian_inverse(xi), atol=1e-6)
 
@@ -170,8 +197,8 @@ def test_log_jacobians_match_central_differences(rng: np.random.Generator) -> No
 def test_servo_error_jacobian_matches_central_differences(rng: np.random.Generator) -> None:
     law = ServoLaw()
     for _ in range(10):
-        T = pose(*rng.uniform(-3, 3, 3), rng.uniform(-3, 3))
-        T_goal = pose(*rng.uniform(-3, 3, 3), rng.uniform(-3, 3))
+        T = random_pose(rng, (-3, 3), (-3, 3), yaw_range=(-3.0, 3.0))
+        T_goal = random_pose(rng, (-3, 3), (-3, 3), yaw_range=(-3.0, 3.0))
 
         def err(d: np.ndarray, T: np.ndarray = T, T_goal: np.ndarray = T_goal) -> np.ndarray:
             # Perturb within the heading-only manifold the law sees (x, y, z, yaw).

@@ -157,6 +157,32 @@ async def test_oversize_upload_without_content_length_is_rejected(tmp_path: Path
     assert os.listdir(tmp_path / "missions") == []
 
 
+async def test_upload_limit_is_enforced_while_streaming(tmp_path: Path) -> None:
+    """The server answers 413 after limit bytes, while the client still has an endless body to send."""
+    import aiohttp
+
+    sent: list[int] = []
+    never = asyncio.Event()
+
+    async def endless() -> Any:
+        for k in range(4):
+            sent.append(k)
+            yield b" " * 512
+        await never.wait()  # the rest of an "infinite" body: only reached if the server keeps reading
+        yield b""
+
+    async with make_server(tmp_path, Controller(), max_upload_bytes=1024) as server:
+        # The timeout only turns a server that waits for the whole body (a hang) into a failure.
+        async with (
+            asyncio.timeout(30.0),
+            aiohttp.ClientSession() as session,
+            session.post(f"{server.url}/api/v1/missions", params={"name": "endless.xml"}, data=endless()) as response,
+        ):
+            assert response.status == 413
+        assert len(sent) <= 4 and not never.is_set()
+    assert os.listdir(tmp_path / "missions") == []
+
+
 async def test_multipart_upload(tmp_path: Path) -> None:
     import aiohttp
 
@@ -200,6 +226,10 @@ async def test_world_readable_or_short_token_file_is_refused(tmp_path: Path) -> 
     token_file.write_text(TOKEN)
     token_file.chmod(0o644)
     with pytest.raises(ConfigError, match="readable by other users"):
+        async with make_server(tmp_path, Controller(), token_file=str(token_file)):
+            pass
+    token_file.chmod(0o602)  # anyone could replace the token
+    with pytest.raises(ConfigError, match="writable by other users"):
         async with make_server(tmp_path, Controller(), token_file=str(token_file)):
             pass
     token_file.write_text("short")

@@ -130,6 +130,7 @@ def test_mount_and_rack_transforms() -> None:
         ({"vision": {"source": "lidar"}}, "vision.source: must be"),
         ({"safety": {"battery_critical_v": 15}}, "safety.battery_critical_v: must be <= safety.battery_low_v"),
         ({"safety": {"gcs_loss_land_s": 1}}, "safety.gcs_loss_land_s: must be >= safety.gcs_loss_hover_s"),
+        ({"safety": {"vision_loss_land_s": 0.2}}, "safety.vision_loss_land_s: must be >= safety.vision_loss_hover_ms"),
         ({"safety": {"geofence_min_ned_m": [0, 0, 0]}}, "safety.geofence_max_ned_m: geofence_min_ned_m and"),
         (
             {"safety": {"geofence_min_ned_m": [0, 0, 0], "geofence_max_ned_m": [1, -1, 1]}},

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from companion.estimation import ImuNoiseModel, NavFilterConfig
+from companion.estimation import ImuNoiseModel, NavFilterConfig, model
 from tests.estimation.scenarios import RANGE_STD_M, run_scenario
 
 RUNS = 100
@@ -58,6 +60,21 @@ def test_overconfident_filter_fails_the_nees_test() -> None:
                          config=cfg, imu_noise=true_noise)
         results.append(r.nees)
     avg = np.mean(results, axis=0)
+    assert avg[-1] > chi2.ppf(0.975, 30 * DOF) / 30
+
+
+def test_filter_with_a_wrong_jacobian_fails_the_nees_test(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The test also catches a wrong model, not only wrong noise: F without the gyro-bias block."""
+    propagate = model.propagate_in_place
+
+    def broken(x: np.ndarray, gyro: Any, accel: Any, dt_s: float, gravity_m_s2: float, F_out: np.ndarray) -> None:
+        propagate(x, gyro, accel, dt_s, gravity_m_s2, F_out)
+        F_out[6:9, 9:12] = 0.0  # attitude error no longer driven by the gyro-bias error
+
+    monkeypatch.setattr(model, "propagate_in_place", broken)
+    runs = [run_scenario(seed, mode="ground", range_rate_hz=10.0, duration_s=3.0, checkpoint_every=100).nees
+            for seed in range(30)]
+    avg = np.mean(runs, axis=0)
     assert avg[-1] > chi2.ppf(0.975, 30 * DOF) / 30
 
 

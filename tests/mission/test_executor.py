@@ -339,6 +339,12 @@ def test_servo_needs_a_rack_layout() -> None:
         MissionExecutor(mission, rack=RackLayout(radii_m=(0.1,), gaps_m=(), length_m=10.0))
     ex = MissionExecutor(mission, rack=RackLayout(radii_m=(0.1, 0.2), gaps_m=(0.3,), length_m=10.0))
     assert ex.rack is not None and ex.rack.pipe_axis_x_m(2) == pytest.approx(0.7)
+    # A rack from outside the file is checked like a declared one: goal height and y before flight.
+    high = parse_mission(doc('<servo pipe="2" height="9.0" y="4.0"/>'))  # passes the parser (pipe top unknown)
+    with pytest.raises(MissionError, match=r"<string>:3: servo\.height: goal height 10\.4 m .* above the ceiling 10 m"):
+        MissionExecutor(high, rack=RackLayout(radii_m=(0.1, 0.7), gaps_m=(0.3,), length_m=10.0))
+    with pytest.raises(MissionError, match=r"servo\.y: 4 m is off the pipes \(0\.\.3 m\)"):
+        MissionExecutor(mission, rack=RackLayout(radii_m=(0.1, 0.2), gaps_m=(0.3,), length_m=3.0))
 
 
 def test_rack_sweep_completes_in_the_loop() -> None:

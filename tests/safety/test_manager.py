@@ -261,3 +261,68 @@ def test_every_decision_emits_an_event() -> None:
     assert sm.filter(CLIMB, healthy(1.0, last_pose_s=0.0), 1.0) is None
     out = sm.step(healthy(1.1, last_pose_s=0.0), 1.1)
     assert [e.kind for e in out.events] == ["commands"] and "blocked" in out.events[0].message
+
+
+def test_unknown_or_impossible_height_never_allows_a_climb() -> None:
+    sm = SafetyManager(SafetyConfig(ceiling_m=5.0))
+    sm.step(healthy(0.0), 0.0)
+    for t, altitude in ((0.1, None), (0.2, float("nan")), (0.3, float("inf"))):
+        cmd = sm.filter(CLIMB, healthy(t, altitude_m=altitude), t)
+        assert cmd is not None and cmd.vz_m_s == 0.0 and cmd.vx_m_s == 0.3
+    descend = VelocityCommand(0.0, 0.0, 0.4, 0.0)
+    assert sm.filter(descend, healthy(0.4, altitude_m=None), 0.4) == descend
+    assert "ceiling" in kinds([sm.step(healthy(0.5), 0.5)])
+
+
+def test_geofence_with_unknown_or_nan_position_stops_translation() -> None:
+    sm = SafetyManager(SafetyConfig(geofence_min_ned_m=(-5.0, -5.0, -8.0), geofence_max_ned_m=(5.0, 5.0, 1.0)))
+    sm.step(healthy(0.0), 0.0)
+    for t, pos in ((0.1, None), (0.2, (float("nan"), 0.0, -2.0))):
+        cmd = sm.filter(CLIMB, healthy(t, position_ned_m=pos), t)
+        assert cmd is not None
+        assert (cmd.vx_m_s, cmd.vy_m_s, cmd.vz_m_s, cmd.yaw_rate_rad_s) == (0.0, 0.0, 0.0, 0.1)
+
+
+def test_ceiling_wins_over_a_geofence_that_pushes_up() -> None:
+    # Below the fence floor (z > max down) right under the ceiling: the fence asks to climb, the ceiling refuses.
+    cfg = SafetyConfig(ceiling_m=5.0, geofence_min_ned_m=(-5.0, -5.0, -8.0), geofence_max_ned_m=(5.0, 5.0, -6.0))
+    sm = SafetyManager(cfg)
+    sm.step(healthy(0.0), 0.0)
+    cmd = sm.filter(VelocityCommand(0.0, 0.0, 0.0, 0.0), healthy(0.1, altitude_m=5.2, position_ned_m=(0.0, 0.0, -5.2)),
+                    0.1)
+    assert cmd is not None and cmd.vz_m_s >= 0.0
+
+
+def test_impossible_battery_readings_are_unknown_not_critical() -> None:
+    sm = SafetyManager(SafetyConfig(battery_critical_debounce_s=0.5, battery_low_debounce_s=0.5))
+    outs = run(sm, 0.0, 2.0, lambda t: healthy(t, battery_v=0.0, battery_pct=float("nan")))
+    assert all(o.action is SafetyAction.NONE and not o.faults for o in outs)
+    outs = run(sm, 2.1, 4.0, lambda t: healthy(t, battery_v=-1.0, battery_pct=101.0))
+    assert all(o.action is SafetyAction.NONE and not o.faults for o in outs)
+
+
+def test_critical_battery_upgrades_a_landing_and_stays_latched() -> None:
+    cfg = SafetyConfig(battery_low_debounce_s=1.0, battery_critical_debounce_s=2.0, gcs_timeout_s=1.0,
+                       gcs_land_timeout_s=1.5)
+    sm = SafetyManager(cfg)
+    outs = run(sm, 0.0, 1.9, lambda t: healthy(t, battery_v=13.8, last_gcs_heartbeat_s=0.0))
+    assert outs[-1].action is SafetyAction.LAND  # battery low and GCS land, not yet critical
+    outs = run(sm, 2.0, 4.5, lambda t: healthy(t, battery_v=13.0, last_gcs_heartbeat_s=0.0))
+    critical = next(o for o in outs if o.action is SafetyAction.LAND_NOW)
+    assert critical.time_s == pytest.approx(4.0)
+    # The sag recovers under lighter load and the GCS comes back: still landing now, resume refused.
+    outs = run(sm, 4.6, 6.0, lambda t: healthy(t, battery_v=15.5))
+    assert all(o.action is SafetyAction.LAND_NOW for o in outs)
+    assert not sm.operator_resume(6.0)
+    assert sm.step(healthy(6.1, battery_v=15.5), 6.1).action is SafetyAction.LAND_NOW
+
+
+def test_commands_pass_only_while_the_watchdog_runs() -> None:
+    sm = SafetyManager(SafetyConfig(watchdog_stale_s=1.0))
+    assert sm.filter(CLIMB, healthy(0.0), 0.0) is None  # step never ran: battery, GCS... unchecked
+    sm.step(healthy(0.0), 0.0)
+    assert sm.filter(CLIMB, healthy(0.9), 0.9) == CLIMB
+    assert sm.filter(CLIMB, healthy(1.5), 1.5) is None  # watchdog stalled
+    out = sm.step(healthy(1.6), 1.6)
+    assert any("watchdog not running" in e.message for e in out.events)
+    assert sm.filter(CLIMB, healthy(1.6), 1.6) == CLIMB
