@@ -9,6 +9,8 @@
   (an upper bound on "estimate ready -> bytes on the socket": it includes the kernel hop and the
   receiver's wake-up).
 Medians of several runs; the machine is shared, so treat the numbers as indicative.
+
+Run: ``python bench/link_throughput.py`` (prints exactly one JSON object on stdout).
 """
 
 from __future__ import annotations
@@ -18,12 +20,16 @@ import json
 import logging
 import socket
 import statistics
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `python bench/link_throughput.py` from anywhere
 
 from drivers.mavlink import LinkConfig, MavLink, PoseOut
 from drivers.mavlink.state import StateTracker
@@ -146,9 +152,9 @@ async def bench_pose_latency(n_poses: int = 200) -> list[float]:
             T = np.eye(4)
             for i in range(n_poses):
                 T[0, 3] = 0.01 * i
+                t0 = time.perf_counter()  # estimate ready: wrapping it in PoseOut (validation) is on the clock
                 stamp = time.monotonic()
-                pose = PoseOut(stamp, T, cov, reset_counter=0)  # estimate ready
-                t0 = time.perf_counter()
+                pose = PoseOut(stamp, T, cov, reset_counter=0)
                 assert link.send_pose(pose)
                 sent[round(stamp * 1e6)] = t0
                 await asyncio.sleep(0.01)

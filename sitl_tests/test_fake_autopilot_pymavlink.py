@@ -18,7 +18,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.clock import ManualClock
-from companion.sim.autopilot import DrydenConfig, FakeAutopilot, FakeAutopilotConfig, Fault
+from companion.errors import ConfigError, InputError
+from companion.sim.autopilot import BatteryParams, DrydenConfig, FakeAutopilot, FakeAutopilotConfig, Fault
 
 G = 9.80665
 FLAG_CUSTOM = float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
@@ -358,6 +359,21 @@ async def test_timesync_origin_set_once_and_recorded_messages(clock: ManualClock
         assert [r.type for r in ap.received][:1] == ["HEARTBEAT"]
 
 
+async def test_received_records_are_capped_keeping_the_newest(clock: ManualClock) -> None:
+    async with session(clock, max_records=32) as (ap, client):
+        for i in range(100):
+            client.send(client.mav.timesync_encode(0, 1000 + i))
+            if i % 10 == 9:
+                await clock.advance(0.01)
+        await clock.advance(0.02)
+        assert ap.stats["received"] == 101  # the session's heartbeat and 100 TIMESYNC
+        kept = [r.fields["ts1"] for r in ap.received_of("TIMESYNC")]
+        assert 30 <= len(ap.received) <= 32
+        assert kept == list(range(1100 - len(kept), 1100))  # oldest dropped, order kept
+    with pytest.raises(ConfigError):
+        FakeAutopilotConfig(max_records=0)
+
+
 async def test_link_loss_silences_both_directions(clock: ManualClock) -> None:
     async with session(clock) as (ap, client):
         ap.schedule(Fault("link-loss", at_s=ap.elapsed_s + 1.0, duration_s=1.0))
@@ -467,6 +483,20 @@ async def test_battery_faults_and_battery_failsafe(clock: ManualClock) -> None:
         assert client.of("HEARTBEAT")[-1].system_status == mavlink.MAV_STATE_CRITICAL
         await clock.advance(8.0)
         assert ap.truth.on_ground and not ap.armed
+
+
+async def test_battery_status_carries_more_than_ten_cells_in_the_extension(clock: ManualClock) -> None:
+    """A 12S pack: cells 1..10 in `voltages`, 11..12 in `voltages_ext` (0 = no cell); the sum is the pack."""
+    async with session(clock, battery=BatteryParams(cells=12)) as (ap, client):
+        await clock.advance(1.1)
+        status = client.of("BATTERY_STATUS")[-1]
+        assert len(set(status.voltages)) == 1 and status.voltages[0] == pytest.approx(4200, abs=5)
+        assert list(status.voltages_ext) == [status.voltages[0]] * 2 + [0, 0]
+        total_mv = sum(status.voltages) + sum(status.voltages_ext)
+        assert total_mv == pytest.approx(client.of("SYS_STATUS")[-1].voltage_battery, abs=12)
+        assert total_mv / 1000.0 == pytest.approx(ap.truth.battery_voltage_v, abs=0.02)
+    with pytest.raises(InputError):
+        BatteryParams(cells=15)
 
 
 async def test_gcs_heartbeats_stop_on_gcs_loss(clock: ManualClock) -> None:

@@ -204,6 +204,12 @@ def check_pose_messages(ap: FakeAutopilot, link: MavLink, sent: list[PoseOut]) -
     for r in vpe[-20:]:
         cov = covariance_from_upper_triangle(r.fields["covariance"])
         np.testing.assert_allclose(cov, POSE_COV, rtol=1e-6, atol=1e-9)
+        # Independently of our own helper: row-major upper triangle of (x, y, z, roll, pitch, yaw), so the
+        # diagonal sits at 0, 6, 11, 15, 18, 20 (the indices ArduPilot and PX4 read the variances from).
+        flat = np.asarray(r.fields["covariance"])
+        np.testing.assert_allclose(flat[[0, 6, 11, 15, 18, 20]], np.diag(POSE_COV), rtol=1e-6)
+        assert flat[1] == pytest.approx(POSE_COV[0, 1]) and flat[14] == pytest.approx(POSE_COV[2, 5])
+        assert np.count_nonzero(flat) == 8  # six variances and the two covariances, nothing else
         assert r.fields["reset_counter"] == 0
         # the stamp is the capture time in the fake's boot-time base: it arrived within 30 ms of capture
         arrival_autopilot_s = r.time_s - (ap.clock.now() - ap.elapsed_s)
@@ -310,6 +316,47 @@ async def test_ten_thousand_garbage_frames() -> None:
             feeder.__exit__()
             assert ap.mode == "GUIDED"
             assert math.isfinite(link.state.last_autopilot_heartbeat_s or math.nan)
+
+
+async def test_udpin_keeps_answering_the_autopilot_when_another_sender_speaks() -> None:
+    """A GCS (valid MAVLink, other system id) sending to our udpin port must not take the link over."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    async def let_the_loop_run() -> None:
+        """Let socket I/O flow with the manual clock standing still, until the link hears nothing more."""
+        last, quiet = -1, 0
+        while quiet < 10:
+            await asyncio.sleep(0)
+            n = link.stats.bytes_in
+            quiet, last = (quiet + 1 if n == last else 0), n
+
+    clock = ManualClock(100.0)
+    async with MavLink(LinkConfig(url="udpin:127.0.0.1:0"), clock=clock) as link:
+        addr = link.local_address
+        assert addr is not None
+        cfg = FakeAutopilotConfig(listen=f"udpout:127.0.0.1:{addr[1]}", require_vision=False, seed=1)
+        async with FakeAutopilot(cfg, clock=clock) as ap:
+            await drive(clock, link.wait_autopilot(5.0))
+            gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            gcs.bind(("127.0.0.1", 0))
+            gcs.setblocking(False)
+            gcs_mav = mavlink.MAVLink(None, 255, 190)
+            try:
+                await let_the_loop_run()  # the fake's last datagrams are read: the GCS speaks last
+                hb = gcs_mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4)
+                gcs.sendto(bytes(hb.pack(gcs_mav)), addr)
+                await let_the_loop_run()
+                assert link.state.last_gcs_heartbeat_s is not None  # heard, and tracked as the GCS
+                link.statustext("for the autopilot")  # sent before the autopilot speaks again
+                await let_the_loop_run()
+                with pytest.raises(BlockingIOError):
+                    gcs.recv(65536)  # nothing of ours went to the GCS
+                await clock.advance(0.05)
+                assert [r.fields["text"] for r in ap.received_of("STATUSTEXT")] == ["for the autopilot"]
+                await drive(clock, link.set_mode("GUIDED"))
+                assert ap.mode == "GUIDED" and link.stats.command_retries == 0
+            finally:
+                gcs.close()
 
 
 async def test_tcp_link_to_the_fake() -> None:

@@ -91,6 +91,13 @@ class LinkConfig:
     + VISION_SPEED_ESTIMATE) or "odometry". ``message_rates_hz`` maps message names to requested
     rates; ``request_sim_state`` adds SIM_STATE (simulator truth). ``forward_urls``: GCS endpoints
     that get every autopilot frame and whose frames go to the autopilot.
+
+    ``pose_stamp_base``: time base of the pose ``usec`` field. "autopilot" (default): the capture
+    time converted to the autopilot's clock once TIMESYNC converged (ours if it never answers).
+    "local": always our monotonic capture time. PX4 wants "local": its receiver converts ``usec``
+    with its *own* TIMESYNC offset (the requests we answer), so an already converted stamp is
+    shifted twice once PX4's estimate has converged. ArduPilot accepts either (it estimates the
+    offset of the stamps itself).
     """
 
     url: str
@@ -115,6 +122,7 @@ class LinkConfig:
     pose_message: str = "vision"
     send_vision_speed: bool = True
     pose_max_age_s: float = 0.5
+    pose_stamp_base: str = "autopilot"
     setpoint_rate_hz: float = 20.0
     forward_urls: tuple[str, ...] = ()
     accept_mavlink1: bool = False
@@ -132,6 +140,8 @@ class LinkConfig:
                 profile_named(self.autopilot_profile)
             except InputError as exc:
                 raise ConfigError(f"link.autopilot_profile: {exc}") from None
+        if self.pose_stamp_base not in ("autopilot", "local"):
+            raise ConfigError(f"link.pose_stamp_base must be 'autopilot' or 'local', got {self.pose_stamp_base!r}")
         if self.pose_message not in ("vision", "odometry"):
             raise ConfigError(f"link.pose_message must be 'vision' or 'odometry', got {self.pose_message!r}")
         if self.setpoint_rate_hz < 10.0:
@@ -228,6 +238,7 @@ class MavLink:
             (make_transport(parse_url(url)), FrameParser(config.accept_mavlink1)) for url in config.forward_urls
         ]
         self._queue = SendQueue()
+        self._wall_time_s = wall_time_s
         self._tlog = TlogWriter(tlog_path, wall_time_s) if tlog_path is not None else None
         self._counts: dict[str, int] = {name: 0 for name in LinkStats.__dataclass_fields__}
         self._imu_callbacks: list[Callable[[ImuSample], object]] = []
@@ -248,6 +259,7 @@ class MavLink:
         self._last_autopilot_rx_s: float | None = None
         self._statustext_id = 0
         self._interval_task: asyncio.Task[None] | None = None
+        self._warned_mavlink1 = False
         self._open = False
 
     # ================================================================ context manager
@@ -382,7 +394,8 @@ class MavLink:
         Refused (False, counted): not newer than the last pose sent, older than ``pose_max_age_s``, or
         while the stamp's time base is undecided (TIMESYNC converging, at most ``timesync_fallback_s``
         after the autopilot appeared). ``usec`` on the wire is the capture time in the autopilot's
-        time base (TIMESYNC), or in ours if the autopilot does not answer TIMESYNC.
+        time base (TIMESYNC), or in ours if the autopilot does not answer TIMESYNC or the config
+        says ``pose_stamp_base="local"``.
         """
         now = self._clock.now()
         if (self._last_pose_stamp_s is not None and pose.stamp_s <= self._last_pose_stamp_s) or (
@@ -414,7 +427,9 @@ class MavLink:
         """ "autopilot" once TIMESYNC converged, "local" if it did not within ``timesync_fallback_s`` of the
         autopilot appearing (or is disabled), None while undecided. Decided once: the stamps never jump."""
         if self._pose_base is None:
-            if self._timesync.converged:
+            if self.config.pose_stamp_base == "local":
+                self._pose_base = "local"
+            elif self._timesync.converged:
                 self._pose_base = "autopilot"
             elif self.config.timesync_period_s <= 0.0 or (
                 self._autopilot_since_s is not None and now - self._autopilot_since_s > self.config.timesync_fallback_s
@@ -436,6 +451,8 @@ class MavLink:
         self._velocity_cmd = command
         if command is not None:
             self._setpoint_wake.set()
+        else:  # a setpoint still waiting for the writer must not follow a hold/land command out
+            self._queue.clear(Priority.SETPOINT)
 
     # ---------------------------------------------------------------- commands
     async def command_long(
@@ -577,7 +594,7 @@ class MavLink:
             q = (w, x, y, z)
         frame = self._encoder.camera_image_captured(
             self._boot_ms(),
-            usec_from_s(time.time() if time_utc_s is None else time_utc_s),
+            usec_from_s(self._wall_time_s() if time_utc_s is None else time_utc_s),
             int(image_index),
             file_url,
             success,
@@ -684,7 +701,11 @@ class MavLink:
                 if item.expires_s is not None and self._clock.now() > item.expires_s:
                     self._counts["frames_expired"] += 1
                     continue
-                self._write_now(item.data, item.to_gcs)
+                try:
+                    self._write_now(item.data, item.to_gcs)
+                except Exception:  # the only writer: one bad write must not silence the link for good
+                    self._counts["write_failures"] += 1
+                    log.exception("mavlink writer: writing a frame failed")
 
     def _write_now(self, data: bytes, to_gcs: bool) -> None:
         if self._transport.write(data):
@@ -765,8 +786,14 @@ class MavLink:
     def _receive(self, data: bytes) -> None:
         now = self._clock.now()
         msgs = self._parser.feed(data, datagram=self._transport.datagram)
-        if msgs:
-            self._transport.accept_last_source()
+        if not self._warned_mavlink1 and self._parser.counters.mavlink1_rejected:
+            self._warned_mavlink1 = True  # a misconfigured port looks like a dead link otherwise
+            log.warning(
+                "MAVLink 1 frames on %s are ignored: configure the autopilot port for MAVLink 2 "
+                "(ArduPilot SERIALn_PROTOCOL=2) or set accept_mavlink1",
+                self.config.url,
+            )
+        from_autopilot = False
         for msg in msgs:
             if self._tlog is not None:
                 self._tlog.write(bytes(msg.get_msgbuf()))
@@ -776,6 +803,12 @@ class MavLink:
                     if t.write(frame):
                         self._counts["forwarded_to_gcs"] += 1
             self._handle(msg, now)
+            from_autopilot = from_autopilot or self._tracker.autopilot_address == (
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+            )
+        if from_autopilot:  # udpin answers the autopilot's address; another sender cannot take the link
+            self._transport.accept_last_source()
 
     def _forward_receiver(self, transport: Transport, parser: FrameParser) -> Callable[[bytes], None]:
         def receive(data: bytes) -> None:
@@ -801,7 +834,9 @@ class MavLink:
             imu = self._tracker.apply(msg, now)
         except Exception:  # a decoder bug must not kill the reader; count and go on
             self._counts["callback_errors"] += 1
-            log.exception("decoding %s failed", kind)
+            n = self._counts["callback_errors"]
+            if n <= 10 or n % 1000 == 0:
+                log.exception("decoding %s failed (%d callback errors so far)", kind, n)
             imu = None
         if kind == "HEARTBEAT":
             new_address = self._tracker.autopilot_address
@@ -814,7 +849,12 @@ class MavLink:
                 self._autopilot_heartbeat(new_address)
         elif kind == "TIMESYNC":
             self._handle_timesync(msg, now)
-        elif kind == "COMMAND_ACK" and address is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == address:
+        elif (
+            kind == "COMMAND_ACK"
+            and address is not None
+            and (msg.get_srcSystem(), msg.get_srcComponent()) == address
+            and self._ack_is_for_us(msg)
+        ):
             fut = self._pending_acks.get(int(msg.command))
             if fut is not None and not fut.done():
                 fut.set_result(int(msg.result))
@@ -823,6 +863,13 @@ class MavLink:
                 self._call(cb, imu)
         for mcb in list(self._message_callbacks):
             self._call(mcb, msg)
+
+    def _ack_is_for_us(self, msg: Any) -> bool:
+        """COMMAND_ACK target ids: ArduPilot and PX4 address the sender of the command; 0 = not filled in
+        (older firmware). An ACK of the same command sent by a GCS (e.g. through our forwarding) is not ours."""
+        target_system = int(getattr(msg, "target_system", 0) or 0)
+        target_component = int(getattr(msg, "target_component", 0) or 0)
+        return target_system in (0, self._encoder.system_id) and target_component in (0, self._encoder.component_id)
 
     def _autopilot_heartbeat(self, address: tuple[int, int]) -> None:
         if self.config.system_id is None and self._encoder.system_id != address[0]:
@@ -854,7 +901,9 @@ class MavLink:
                 raise InputError("link callbacks must be plain functions, not coroutines")
         except Exception:
             self._counts["callback_errors"] += 1
-            log.exception("link callback %r failed", callback)
+            n = self._counts["callback_errors"]
+            if n <= 10 or n % 1000 == 0:  # rate-limited: the count is in `stats`
+                log.exception("link callback %r failed (%d callback errors so far)", callback, n)
 
 
 def _command_name(command: int) -> str:

@@ -318,6 +318,11 @@ class FrameParser:
         self._accept_v1 = accept_mavlink1
         self.counters = ParserCounters()
 
+    @property
+    def held_bytes(self) -> int:
+        """Bytes the parser keeps in memory between calls (a pending partial frame, < 280)."""
+        return len(self._mav.buf)
+
     def feed(self, data: bytes, datagram: bool = False) -> list[Any]:
         """Decoded, known messages in ``data`` (plus bytes held from earlier calls).
 
@@ -335,6 +340,12 @@ class FrameParser:
                 mav.buf_index = 0
                 mav.expected_length = mavlink.HEADER_LEN_V1 + 2
                 out += self._parse(b"")
+        mav = self._mav
+        if mav.buf_index:
+            # pymavlink only frees consumed bytes when a read ends exactly on a frame boundary; on a
+            # byte stream (serial, TCP) that is rare, so drop them here: the buffer stays < 1 frame.
+            del mav.buf[: mav.buf_index]
+            mav.buf_index = 0
         return out
 
     def _parse(self, data: bytes) -> list[Any]:

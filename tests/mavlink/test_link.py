@@ -129,6 +129,23 @@ async def test_commands_ack_deny_timeout_and_retry(clock_peer: Any) -> None:
         assert takeoff.param7 == 2.0
 
 
+async def test_command_ack_addressed_to_another_system_is_not_ours(clock_peer: Any) -> None:
+    """With forwarding, a GCS's ARM gets an ACK addressed to the GCS; it must not complete our command."""
+    clock, peer = clock_peer
+    peer.ack_result[mavlink.MAV_CMD_COMPONENT_ARM_DISARM] = None  # the test answers by hand
+    async with MavLink(LinkConfig(url=peer.url, command_timeout_s=5.0), clock=clock) as link:
+        await _connected(clock, peer, link)
+        task = asyncio.ensure_future(link.arm())
+        await clock.advance(0.1, step_s=0.02)
+        denied_for_gcs = mavlink.MAV_RESULT_DENIED
+        peer.send(peer.mav.command_ack_encode(400, denied_for_gcs, 0, 0, 255, 190))
+        await clock.advance(0.1, step_s=0.02)
+        assert not task.done()
+        peer.send(peer.mav.command_ack_encode(400, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 1, 197))
+        await run(clock, task)
+        assert link.stats.commands_denied == 0 and link.stats.command_retries == 0
+
+
 async def test_takeoff_denied_on_retry_but_already_flying_is_success(clock_peer: Any) -> None:
     clock, peer = clock_peer
     async with MavLink(LinkConfig(url=peer.url, command_timeout_s=0.5), clock=clock) as link:
@@ -237,6 +254,42 @@ async def test_pose_time_base_falls_back_to_local_without_timesync(clock_peer: A
         assert peer.of_type("VISION_POSITION_ESTIMATE")[0].msg.usec == round(stamp * 1e6)
 
 
+async def test_pose_stamp_base_local_sends_capture_time_on_our_clock(clock_peer: Any) -> None:
+    """PX4 converts ``usec`` itself with its own TIMESYNC estimate: with "local" the stamp is our clock's."""
+    clock, peer = clock_peer
+    async with MavLink(LinkConfig(url=peer.url, pose_stamp_base="local"), clock=clock) as link:
+        await _connected(clock, peer, link)
+        stamp = clock.now() - 0.02
+        assert link.send_pose(_pose(stamp))  # no wait for TIMESYNC
+        await clock.advance(0.5, step_s=0.02)
+        assert link.time_offset_s == pytest.approx(peer.time_offset_s, abs=0.02)  # TIMESYNC still runs
+        assert link.send_pose(_pose(clock.now()))
+        await clock.advance(0.02)
+        usecs = [r.msg.usec for r in peer.of_type("VISION_POSITION_ESTIMATE")]
+        assert usecs[0] == round(stamp * 1e6) and usecs[1] == round((stamp + 0.02 + 0.5) * 1e6)
+        assert link.pose_time_base == "local"
+    with pytest.raises(ConfigError):
+        LinkConfig(url=peer.url, pose_stamp_base="gps")
+
+
+async def test_tlog_on_a_full_disk_does_not_stop_the_link(clock_peer: Any) -> None:
+    if not Path("/dev/full").exists():
+        pytest.skip("needs /dev/full")
+    clock, peer = clock_peer
+    async with MavLink(LinkConfig(url=peer.url), clock=clock, tlog_path="/dev/full") as link:
+        imus: list[Any] = []
+        link.on_imu(imus.append)
+        await _connected(clock, peer, link)
+        for i in range(300):  # ~20 kB of tlog: more than one write buffer
+            peer.send(peer.mav.highres_imu_encode(i, 0, 0, -9.8, 0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+            if i % 50 == 0:
+                await _drain(link)
+        await _drain(link)
+        assert len(imus) == 300  # the reader went on
+        await run(clock, link.arm())  # and so did the writer
+        assert link.state.armed or peer.armed
+
+
 async def test_odometry_option(clock_peer: Any) -> None:
     clock, peer = clock_peer
     async with MavLink(LinkConfig(url=peer.url, pose_message="odometry"), clock=clock) as link:
@@ -337,6 +390,21 @@ async def test_garbage_datagrams_are_counted_and_survived(clock_peer: Any) -> No
         assert st.garbage_bytes + st.bad_frames + st.unknown_messages > 0 and st.parser_errors == 0
         assert link.state.last_autopilot_heartbeat_s == pytest.approx(clock.now(), abs=0.06)
         await run(clock, link.arm())
+
+
+async def test_mavlink1_autopilot_is_ignored_with_one_warning(
+    clock_peer: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    clock, peer = clock_peer
+    async with MavLink(LinkConfig(url=peer.url), clock=clock) as link:
+        await clock.advance(0.02)  # our heartbeat tells the peer where we are
+        v1 = peer.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 4, 3)
+        for _ in range(3):
+            peer.send_bytes(bytes(v1.pack(peer.mav, force_mavlink1=True)))
+            await clock.advance(0.05)
+        assert link.stats.mavlink1_rejected == 3 and link.state.autopilot is None
+        warnings = [r for r in caplog.records if "MAVLink 1 frames" in r.getMessage()]
+        assert len(warnings) == 1 and warnings[0].levelname == "WARNING"
 
 
 async def test_silence_then_reconnect(clock_peer: Any) -> None:

@@ -246,6 +246,23 @@ def test_split_frames_across_reads() -> None:
     assert len(got) == 5
 
 
+def test_byte_stream_split_anywhere_decodes_everything_with_bounded_memory(rng: np.random.Generator) -> None:
+    """Serial/TCP reads end at arbitrary bytes; consumed bytes must not pile up in the parser."""
+    enc = Encoder(1, 1)
+    pose = _pose(rng)
+    one_round = [enc.heartbeat(), enc.vision_position_estimate(pose, 1), enc.velocity_setpoint((1, 1), 0, 1, 2, 3, 4)]
+    data = b"".join(f for _ in range(400) for f in one_round)
+    parser = FrameParser()
+    got, held_max, start = 0, 0, 0
+    while start < len(data):
+        end = start + int(rng.integers(1, 200))
+        got += len(parser.feed(data[start:end]))
+        held_max = max(held_max, parser.held_bytes)
+        start = end
+    assert got == 1200
+    assert held_max < 280  # at most one partial MAVLink 2 frame
+
+
 def test_tlog_records_are_mavproxy_format(tmp_path: object) -> None:
     from pathlib import Path
 
@@ -271,3 +288,18 @@ def test_tlog_records_are_mavproxy_format(tmp_path: object) -> None:
         types.append(m.get_type())
     mlog.close()
     assert types == ["HEARTBEAT", "STATUSTEXT"]
+
+
+def test_tlog_write_error_stops_the_log_without_raising() -> None:
+    """A full disk (here /dev/full) must not raise into the link's reader or writer."""
+    from pathlib import Path
+
+    if not Path("/dev/full").exists():
+        pytest.skip("needs /dev/full")
+    writer = TlogWriter("/dev/full", wall_time_s=lambda: 1.0)
+    frame = Encoder(1, 197).heartbeat()
+    for _ in range(2000):  # far more than one write buffer
+        writer.write(frame)
+    writer.close()
+    assert writer.failed and isinstance(writer.error, OSError)
+    assert writer.records < 2000

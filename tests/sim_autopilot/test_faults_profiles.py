@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -21,7 +22,7 @@ def test_fault_defaults_windows_and_validation() -> None:
     assert forever.end_s == math.inf and forever.active(1e6)
     assert active_faults([f, forever], 6.0, "gcs-loss") == [forever]
     assert Fault("command-reject", 0.0, commands=[400]).params["commands"] == (400,)
-    for bad in (
+    bad_faults: tuple[Callable[[], Fault], ...] = (
         lambda: Fault("meteor-strike", 1.0),
         lambda: Fault("latency", -1.0),
         lambda: Fault("latency", 1.0, duration_s=0.0),
@@ -29,7 +30,8 @@ def test_fault_defaults_windows_and_validation() -> None:
         lambda: Fault("message-loss", 1.0, percent=120.0),
         lambda: Fault("message-loss", 1.0, direction="sideways"),
         lambda: Fault("command-reject", 1.0, result="maybe"),
-    ):
+    )
+    for bad in bad_faults:
         with pytest.raises(InputError):
             bad()
 

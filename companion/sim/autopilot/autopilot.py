@@ -89,6 +89,7 @@ DEFAULT_RATES_HZ: dict[str, dict[str, float]] = {
 }
 
 _MAX_RATE_HZ = 400.0
+_MAX_PARSERS = 16  # per-peer frame parsers kept (one per UDP source address / TCP client)
 _ACCEPTED: int = mavlink.MAV_RESULT_ACCEPTED
 _FAILED: int = mavlink.MAV_RESULT_FAILED
 _FORCE_MAGIC = 21196
@@ -139,7 +140,8 @@ class FakeAutopilotConfig:
     ``origin_lla``: EKF origin already set at boot (lat deg, lon deg, alt m), e.g. a GPS configuration.
     ``reference_lla``: where SIM_STATE's lat/lon are computed from while no origin is set.
     ``gcs_heartbeat``: also emit GCS heartbeats (sysid 255, MAV_TYPE_GCS) at 1 Hz on the same link.
-    ``max_records``: keep at most this many received-message records (oldest dropped; None = all).
+    ``max_records``: keep at most this many received-message records (oldest dropped in batches of
+    1/16 of it; None = all). About 0.5 kB per record: the default holds ~100 MB in a long real-time run.
     ``ekf_position_noise_m`` / ``ekf_attitude_noise_rad``: noise on the reported (EKF) position/attitude.
     """
 
@@ -176,6 +178,8 @@ class FakeAutopilotConfig:
             raise ConfigError(f"system_id/component_id out of range: {self.system_id}/{self.component_id}")
         if not 50.0 <= self.physics_rate_hz <= 2000.0:
             raise ConfigError(f"physics_rate_hz must be in [50, 2000], got {self.physics_rate_hz}")
+        if self.max_records is not None and self.max_records < 1:
+            raise ConfigError(f"max_records must be >= 1 or None, got {self.max_records}")
         for name in self.rates_hz or {}:
             if name not in DEFAULT_RATES_HZ["ardupilot"]:
                 raise ConfigError(f"rates_hz: cannot stream {name!r}; known: {sorted(DEFAULT_RATES_HZ['ardupilot'])}")
@@ -719,8 +723,11 @@ class FakeAutopilot:
             )
         if name == "BATTERY_STATUS":
             voltage = self._battery_voltage()
-            cells_v = voltage / cfg.battery.cells
-            voltages = [int(cells_v * 1000)] * cfg.battery.cells + [65535] * (10 - cfg.battery.cells)
+            cells = cfg.battery.cells
+            cell_mv = int(voltage / cells * 1000)
+            # cells 1..10 in `voltages` (UINT16_MAX = no cell), 11..14 in `voltages_ext` (0 = no cell)
+            voltages = [cell_mv] * min(cells, 10) + [65535] * max(0, 10 - cells)
+            voltages_ext = [cell_mv] * max(0, cells - 10) + [0] * (4 - max(0, cells - 10))
             remaining = self._battery_remaining_pct()
             if remaining <= cfg.battery.critical_remaining_pct:
                 charge_state = mavlink.MAV_BATTERY_CHARGE_STATE_CRITICAL
@@ -744,7 +751,7 @@ class FakeAutopilot:
                 int(remaining),
                 max(0, time_remaining),
                 charge_state,
-                [0, 0, 0, 0],
+                voltages_ext,
                 0,
                 0,
             )
@@ -946,6 +953,8 @@ class FakeAutopilot:
             parser = mavlink.MAVLink(None)
             parser.robust_parsing = True
             self._parsers[peer] = parser
+            while len(self._parsers) > _MAX_PARSERS:  # UDP senders come and go: forget the oldest
+                del self._parsers[next(iter(self._parsers))]
         try:
             msgs = parser.parse_buffer(data) or []
         except Exception:
@@ -985,7 +994,9 @@ class FakeAutopilot:
         self._records.append(record)
         limit = self.config.max_records
         if limit is not None and len(self._records) > limit:
-            del self._records[: len(self._records) - limit]
+            # Trim in batches: deleting one record per message from the front of a 200k list is
+            # O(n) each time. Between trims the list holds 15/16 .. 1 times `limit` records.
+            del self._records[: len(self._records) - limit + limit // 16]
         self.stats["received"] += 1
         self._record_event.set()
         handler = getattr(self, "_on_" + msg_type.lower(), None)

@@ -43,8 +43,8 @@ class BatteryParams:
     critical_remaining_pct: float = 10.0
 
     def __post_init__(self) -> None:
-        if self.cells < 1:
-            raise InputError(f"BatteryParams.cells must be >= 1, got {self.cells}")
+        if not 1 <= self.cells <= 14:  # BATTERY_STATUS carries at most 14 cell voltages
+            raise InputError(f"BatteryParams.cells must be in [1, 14], got {self.cells}")
         if not self.capacity_mah > 0.0:
             raise InputError(f"BatteryParams.capacity_mah must be > 0, got {self.capacity_mah}")
         if not 0.0 <= self.initial_soc <= 1.0:

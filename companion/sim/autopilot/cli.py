@@ -71,7 +71,7 @@ async def _serve(config: FakeAutopilotConfig, duration_s: float | None) -> None:
             print(f"fake autopilot ({config.profile}) on {config.listen}; connect with {ap.url_for_client}", flush=True)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), duration_s)
-            print(f"stopping: mode {ap.mode}, armed {ap.armed}, received {len(ap.received)} messages", flush=True)
+            print(f"stopping: mode {ap.mode}, armed {ap.armed}, received {ap.stats['received']} messages", flush=True)
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
