@@ -1,0 +1,259 @@
+"""The `companion` command line (argparse only; the work is delegated).
+
+Subcommands (DESIGN.md "Command line")::
+
+    companion sim [--mission FILE] [--autopilot ardupilot|px4] [--fault SPEC]... [--headless] [--out DIR]
+    companion fake-autopilot --listen URL [--profile ardupilot|px4]
+    companion run --config FILE
+    companion check-config FILE
+    companion mission validate FILE
+    companion mission upload|list|start|pause|resume|abort|status ...
+    companion status
+    companion replay FOLDER
+
+Exit codes: 0 success; 1 the operation ran and failed (e.g. the simulated
+mission did not complete, the daemon is unreachable); 2 bad input (unknown
+option, invalid file), always with one line on stderr and never a traceback;
+130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from companion.errors import CompanionError, ConfigError, InputError, MissionError
+
+__all__ = ["main"]
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+DEFAULT_CONFIG = Path("/etc/companion/companion.toml")
+
+
+class UsageError(CompanionError):
+    """Bad command-line input (exit 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line on stderr and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(f"{self.prog}: {message} (try '{self.prog} --help')")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"companion: error: {_one_line(message)}", file=sys.stderr)
+    return code
+
+
+# ---------------------------------------------------------------------------------------------- handlers
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
+
+    faults = [parse_fault_spec(spec) for spec in args.fault]
+    _setup_logging(args.verbose)
+    options = SimOptions(
+        mission_path=Path(args.mission) if args.mission else None,
+        autopilot=args.autopilot,
+        faults=tuple(faults),
+        headless=bool(args.headless),
+        out_dir=Path(args.out),
+        max_duration_s=float(args.duration) if args.duration is not None else None,
+        seed=int(args.seed),
+        wind=not args.no_wind,
+        speed=float(args.speed),
+    )
+    return run_sim_cli(options)
+
+
+def _cmd_fake_autopilot(argv: list[str]) -> int:
+    try:
+        from companion.sim.autopilot.cli import main as autopilot_main
+    except ImportError as exc:
+        return _fail(f"the fake autopilot is not available ({exc})", EXIT_FAILED)
+    result = autopilot_main(argv)
+    return int(result) if result is not None else EXIT_OK
+
+
+def _load_config(path: Path) -> Any:
+    from companion.config import load_config
+
+    return load_config(path)
+
+
+def _cmd_check_config(args: argparse.Namespace) -> int:
+    from companion.config import check_config_cli
+
+    code, message = check_config_cli(args.file)
+    print(message, file=sys.stdout if code == 0 else sys.stderr)
+    return int(code)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from companion.daemon.app import run_daemon
+
+    path = Path(args.config)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file (pass --config FILE)")
+    config = _load_config(path)
+    _setup_logging(args.verbose)
+    return asyncio.run(run_daemon(config, config_path=path, record_frames=bool(args.record_frames)))
+
+
+def _cmd_mission(args: argparse.Namespace) -> int:
+    if args.mission_command == "validate":
+        from companion.mission import validate_cli
+
+        code, message = validate_cli(args.file)
+        print(message, file=sys.stdout if code == 0 else sys.stderr)
+        return int(code)
+    from drivers.api import mission_cli
+
+    return int(mission_cli(args))
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from drivers.api import status_cli
+
+    return int(status_cli(args))
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from companion.daemon.replay import run_replay_cli
+
+    _setup_logging(args.verbose)
+    return run_replay_cli(
+        folder=Path(args.folder),
+        config_path=Path(args.config) if args.config else None,
+        out_dir=Path(args.out) if args.out else None,
+        overlay=not args.no_overlay,
+    )
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.DEBUG if verbose > 1 else logging.INFO if verbose == 1 else logging.ERROR
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------- parser
+
+
+def _add_client_arguments(p: argparse.ArgumentParser) -> None:
+    try:
+        from drivers.api import add_client_arguments
+    except ImportError:  # the API client is missing from this installation: the command reports it when run
+        return
+    add_client_arguments(p)
+
+
+def _add_api_subcommands(msub: Any) -> None:
+    try:
+        from drivers.api import add_mission_subcommands
+    except ImportError:
+        return
+    add_mission_subcommands(msub)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="companion", description="Companion computer for GPS-denied inspection drones.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    p = sub.add_parser("sim", help="fly a mission in the simulator and write a report")
+    p.add_argument("--mission", metavar="FILE", help="mission XML (default: the example rack inspection)")
+    p.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot")
+    p.add_argument(
+        "--fault", action="append", default=[], metavar="SPEC",
+        help="KIND@SECONDS[:DURATION]; KIND one of battery-sag, battery-critical, gcs-loss, vision-loss, "
+        "link-loss, camera-unplug, ceiling (repeatable)",
+    )
+    p.add_argument("--headless", action="store_true", help="no live progress display, log lines only")
+    p.add_argument("--out", metavar="DIR", default="sim-out", help="output folder (default ./sim-out)")
+    p.add_argument("--duration", metavar="SECONDS", type=float, default=None,
+                   help="give up after this many simulated seconds (default: sum of the action timeouts)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the wind and the renderer noise")
+    p.add_argument("--no-wind", action="store_true", help="fly without Dryden wind")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")
+    p.set_defaults(handler=_cmd_sim)
+
+    p = sub.add_parser("fake-autopilot", help="the simulator's autopilot on its own (real time)", add_help=False)
+    p.set_defaults(handler=None)
+
+    p = sub.add_parser("run", help="run the daemon (what systemd starts)")
+    p.add_argument("--config", metavar="FILE", default=str(DEFAULT_CONFIG))
+    p.add_argument("--record-frames", action="store_true", help="keep the camera frames for `companion replay`")
+    p.add_argument("-v", "--verbose", action="count", default=1)
+    p.set_defaults(handler=_cmd_run)
+
+    p = sub.add_parser("check-config", help="validate a configuration file")
+    p.add_argument("file", metavar="FILE")
+    p.set_defaults(handler=_cmd_check_config)
+
+    p = sub.add_parser("mission", help="validate missions and talk to a running daemon")
+    msub = p.add_subparsers(dest="mission_command", metavar="ACTION", parser_class=_Parser)
+    msub.required = True
+    q = msub.add_parser("validate", help="validate a mission file (exit 0, or 2 naming line and field)")
+    q.add_argument("file", metavar="FILE")
+    _add_api_subcommands(msub)
+    p.set_defaults(handler=_cmd_mission)
+
+    p = sub.add_parser("status", help="daemon, link, camera, estimator, mission and safety state")
+    _add_client_arguments(p)
+    p.set_defaults(handler=_cmd_status)
+
+    p = sub.add_parser("replay", help="re-run vision on a recorded flight folder")
+    p.add_argument("folder", metavar="FOLDER")
+    p.add_argument("--config", metavar="FILE", default=None, help="configuration (default: the folder's copy)")
+    p.add_argument("--out", metavar="DIR", default=None, help="output folder (default FOLDER/replay)")
+    p.add_argument("--no-overlay", action="store_true", help="do not write the overlay video")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    p.set_defaults(handler=_cmd_replay)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `companion` console script; returns the exit code."""
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if args_list and args_list[0] == "fake-autopilot":
+            return _cmd_fake_autopilot(args_list[1:])
+        parser = build_parser()
+        try:
+            args = parser.parse_args(args_list)
+        except SystemExit as exc:  # --help / --version
+            return int(exc.code) if isinstance(exc.code, int) else EXIT_OK
+        return int(args.handler(args))
+    except KeyboardInterrupt:
+        return _fail("interrupted", EXIT_INTERRUPTED)
+    except (UsageError, InputError, ConfigError, MissionError) as exc:
+        return _fail(str(exc), EXIT_USAGE)
+    except ValueError as exc:  # e.g. a malformed file a parser reports as ValueError
+        return _fail(str(exc), EXIT_USAGE)
+    except CompanionError as exc:
+        return _fail(str(exc), EXIT_FAILED)
+    except ImportError as exc:
+        return _fail(f"a component is missing from this installation: {exc}", EXIT_FAILED)
+    except OSError as exc:
+        return _fail(str(exc), EXIT_FAILED)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
