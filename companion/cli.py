@@ -113,7 +113,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise InputError(f"{path}: no such file (pass --config FILE)")
     config = _load_config(path)
     _setup_logging(args.verbose)
-    return asyncio.run(run_daemon(config, config_path=path, record_frames=bool(args.record_frames)))
+    return asyncio.run(run_daemon(config, config_path=path, record_frames=True if args.record_frames else None))
 
 
 def _cmd_mission(args: argparse.Namespace) -> int:

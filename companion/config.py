@@ -252,6 +252,9 @@ class MavlinkConfig(_Section):
     gcs_forward: tuple[str, ...] = field(default=(), metadata=_check(_urls))
     tlog: bool = True
     odometry: bool = False  # send ODOMETRY instead of VISION_POSITION/SPEED_ESTIMATE
+    # time base of the pose stamps (usec): "auto" = "local" for PX4 (its receiver converts usec with its
+    # own TIMESYNC estimate), "autopilot" (TIMESYNC-converted) for ArduPilot and others
+    pose_stamp_base: Literal["auto", "autopilot", "local"] = "auto"
     heartbeat_timeout_s: float = field(default=3.0, metadata=_check(_gt(0)))
     command_timeout_s: float = field(default=1.5, metadata=_check(_gt(0)))
     command_retries: int = field(default=3, metadata=_check(_ge(0)))
@@ -282,10 +285,16 @@ class CameraConfig(_Section):
     reopen_backoff_s: float = field(default=0.2, metadata=_check(_gt(0)))
     reopen_backoff_max_s: float = field(default=5.0, metadata=_check(_gt(0)))
     max_pose_age_s: float = field(default=0.5, metadata=_check(_gt(0)))
+    # synthetic camera only: NED z (m) of the ground the camera sees when it differs from what the
+    # rangefinder measures to (the simulator's deck); the ground odometer then takes its height from
+    # the estimate. None: rangefinder (or the filter's ground) as usual.
+    sim_ground_z_ned_m: float | None = None
 
     def _cross_check(self) -> None:
         if self.kind in ("video", "folder") and not self.path:
             raise self._fail("path", f'required when kind = "{self.kind}"')
+        if self.sim_ground_z_ned_m is not None and self.kind != "synthetic":
+            raise self._fail("sim_ground_z_ned_m", 'only valid with kind = "synthetic" (simulator)')
         if self.reopen_backoff_max_s < self.reopen_backoff_s:
             raise self._fail("reopen_backoff_max_s", "must be >= camera.reopen_backoff_s")
 
@@ -367,6 +376,14 @@ class VisionConfig(_Section):
     source: Literal["rack", "ground", "auto"] = "auto"
     max_rate_hz: float = field(default=50.0, metadata=_check(_gt(0)))
     rack_tracker: dict[str, Any] = field(default_factory=dict)  # RackTrackerConfig kwargs
+    # floor added to the rack pose covariance (standard deviations, camera frame): the tracker's own
+    # covariance is tighter than the camera-IMU time alignment, which would gate good poses out
+    rack_std_floor_m: float = field(default=0.01, metadata=_check(_ge(0)))
+    rack_std_floor_deg: float = field(default=0.5, metadata=_check(_between(0, 45)))
+    # standard deviation added along the pipes, which the pipe edges do not observe (0 = trust the tracker)
+    rack_along_pipe_std_m: float = field(default=0.0, metadata=_check(_ge(0)))
+    # a gap between frames longer than this restarts the rack tracker from the IMU-propagated estimate
+    frame_gap_reset_s: float = field(default=0.3, metadata=_check(_gt(0)))
     ground_odometer: dict[str, Any] = field(default_factory=dict)  # GroundOdometerConfig kwargs
 
 
@@ -425,6 +442,8 @@ class MissionConfig(_Section):
     upload_folder: str = field(default="/var/lib/companion/missions", metadata=_check(_nonempty))
     default_timeout_s: float = field(default=60.0, metadata=_check(_gt(0)))
     speed_limit_m_s: float = field(default=1.0, metadata=_check(_gt(0)))
+    # heading errors above this are turned out in place before moving (0 = off)
+    turn_first_deg: float = field(default=20.0, metadata=_check(_between(0, 180)))
 
 
 @dataclass(frozen=True)
@@ -462,6 +481,7 @@ class LoggingConfig(_Section):
     flight_root: str = field(default="/var/log/companion/flights", metadata=_check(_nonempty))
     level: Literal["debug", "info", "warning", "error"] = "info"
     health_period_s: float = field(default=5.0, metadata=_check(_gt(0)))
+    record_frames: bool = False  # keep every processed frame in the flight folder (for `companion replay`)
 
 
 @dataclass(frozen=True)
@@ -534,6 +554,7 @@ def parse_config(data: Mapping[str, Any], source: str = "<config>") -> Companion
         sections[name] = _section_from_table(name, table)
     config = CompanionConfig(**sections)
     _check_passthrough(config)
+    mission_limits(config)  # the mission limits the safety section implies must be consistent
     return config
 
 
@@ -551,6 +572,24 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CompanionConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: TOML syntax error: {exc}") from exc
     return parse_config(data, source=str(p))
+
+
+def mission_limits(config: CompanionConfig) -> Any:
+    """The `companion.mission.MissionLimits` a mission is validated against on this vehicle.
+
+    ceiling_m = ``safety.ceiling_m``; max_speed_m_s = the lower of ``safety.max_speed_m_s`` and
+    ``mission.speed_limit_m_s``; every other limit keeps the parser's default.
+    """
+    from companion.errors import InputError
+    from companion.mission import MissionLimits
+
+    try:
+        return MissionLimits(
+            ceiling_m=config.safety.ceiling_m,
+            max_speed_m_s=min(config.safety.max_speed_m_s, config.mission.speed_limit_m_s),
+        )
+    except InputError as exc:
+        raise ConfigError(f"safety.ceiling_m: {exc}") from exc
 
 
 def missing_files(config: CompanionConfig) -> list[str]:

@@ -198,11 +198,15 @@ async def rig(
     start_flight: bool = True,
     flight: FlightParams | None = None,
     max_records: int | None = 200_000,
-    record_frames: bool = False,
+    record_frames: bool | None = None,
 ) -> AsyncIterator[Rig]:
-    """Fake autopilot + inline camera + daemon on a ManualClock; waits until poses flow (EKF healthy)."""
+    """Fake autopilot + inline camera + daemon on a ManualClock; waits until poses flow (EKF healthy).
+
+    The deck/ground offset of the simulated world comes in as ``camera.sim_ground_z_ned_m``;
+    `record_frames` None keeps ``logging.record_frames`` of the config (overrides)."""
     clock = ManualClock(1000.0)
-    ov: dict[str, Any] = {"vision": {"source": vision}, "camera": {"fps": fps, "width": 240, "height": 160}}
+    ov: dict[str, Any] = {"vision": {"source": vision}, "camera": {"fps": fps, "width": 240, "height": 160,
+                                                                   "sim_ground_z_ned_m": VISUAL_GROUND_Z_NED_M}}
     for k, v in (overrides or {}).items():
         ov.setdefault(k, {}).update(v)
     if api:
@@ -219,8 +223,7 @@ async def rig(
         await camera.__aenter__()
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
             vision_inline=True, camera_source=camera, api=api, sdnotify=False,
-            initial_T_ned_body=ap.truth.T_ned_body, flight_root=tmp_path / "flights",
-            visual_ground_z_ned_m=VISUAL_GROUND_Z_NED_M, record_frames=record_frames,
+            initial_T_ned_body=ap.truth.T_ned_body, flight_root=tmp_path / "flights", record_frames=record_frames,
         ))
         await daemon.start()
         r = Rig(clock=clock, ap=ap, daemon=daemon, camera=camera, tmp=tmp_path, config=config)

@@ -189,6 +189,23 @@ class ServoController:
         self._previous_s = float(now_s)
         return self._previous
 
+    def record_sent(self, command: VelocityCommand | None, now_s: float) -> None:
+        """Record the command actually sent at now_s (s) as the base of the next rate limit.
+
+        A safety filter may clamp (or drop) what `update` returned; the vehicle follows what was sent,
+        so the next command must ramp from that, not from the unclamped value, or it jumps when the
+        clamp releases. None means nothing was sent (the vehicle is at rest): like `hold`.
+        """
+        if command is None:
+            command = VelocityCommand.zero()
+        elif not isinstance(command, VelocityCommand) or command.frame != "ned":
+            raise InputError(f"record_sent takes a NED VelocityCommand or None, got {command!r}")
+        now = float(now_s)
+        if not math.isfinite(now):
+            raise InputError(f"now_s must be finite, got {now_s!r}")
+        self._previous = command
+        self._previous_s = now
+
     def update(
         self, T_ned_body: Any, T_ned_body_goal: Any, now_s: float, *, max_speed_m_s: float | None = None
     ) -> VelocityCommand:

@@ -38,7 +38,7 @@ import numpy as np
 from companion.checks import FloatArray, check_transform
 from companion.clock import Clock, SystemClock
 from companion.daemon.flight import FlightFolder
-from companion.daemon.pipeline import FrameInputs, Measurement, VisionPipeline
+from companion.daemon.pipeline import FrameInputs, Measurement, VisionPipeline, rack_std_floor_from_config
 from companion.errors import CameraError, CompanionError, ConfigError, InputError, LinkError, MissionError
 from companion.geometry import frames
 
@@ -58,14 +58,19 @@ class DaemonOptions:
     camera_source: a ready `CameraSource` to use instead of opening the configured one.
     initial_T_ned_body: the start pose prior for the filter and the rack tracker (default: origin).
     api / sdnotify: enable the control API server and the systemd notifier.
+    The options below override the config key named in brackets when given (None: the config's value).
+
     record_frames: keep every processed frame in the flight folder (``frames/`` + ``timestamps.txt``)
-        for `companion replay`.
-    turn_first_rad: heading errors above this (rad) are turned out in place before moving (0 = off).
+        for `companion replay` [logging.record_frames].
+    turn_first_rad: heading errors above this (rad) are turned out in place before moving (0 = off)
+        [mission.turn_first_deg].
     rack_along_pipe_std_m: standard deviation (m) added to the rack pose along the pipes, which the
-        pipe edges do not observe (see `VisionPipeline.fuse`); 0 trusts the tracker's covariance.
+        pipe edges do not observe (see `VisionPipeline.fuse`); 0 trusts the tracker's covariance
+        [vision.rack_along_pipe_std_m].
+    frame_gap_reset_s: a longer gap between frames restarts the rack tracker [vision.frame_gap_reset_s].
     visual_ground_z_ned_m: the NED z of the ground the camera sees, when it differs from what the
         rangefinder measures to (the simulator's deck); the ground odometer's height then comes from
-        the estimate. None: rangefinder (or the filter's ground) as usual.
+        the estimate. None: rangefinder (or the filter's ground) as usual [camera.sim_ground_z_ned_m].
     """
 
     vision_inline: bool = False
@@ -81,10 +86,10 @@ class DaemonOptions:
     watchdog_period_s: float = 0.1
     photo_folder: Path | None = None
     visual_ground_z_ned_m: float | None = None
-    frame_gap_reset_s: float = 0.3
-    record_frames: bool = False
-    rack_along_pipe_std_m: float = 0.0
-    turn_first_rad: float = 0.35
+    frame_gap_reset_s: float | None = None
+    record_frames: bool | None = None
+    rack_along_pipe_std_m: float | None = None
+    turn_first_rad: float | None = None
 
 
 @dataclass(frozen=True)
@@ -173,10 +178,22 @@ class Daemon:
         self._turn_key: tuple[int, str] | None = None
         self._turn_pivot: FloatArray | None = None
         self._health_prev: tuple[int, int, int, int, float] = (0, 0, 0, 0, self.clock.now())
-        self._landed_state: int | None = None
-        self._ceiling_clearance_m: float | None = None
+        self._range_stamp_s: float | None = None
         self.last_fresh_pose_s: float | None = None
         self.safety_output: Any | None = None
+        self.mission_refused: dict[str, Any] | None = None
+        self.mission_limits: Any | None = None
+        opts = self.options
+        self.turn_first_rad = (math.radians(config.mission.turn_first_deg) if opts.turn_first_rad is None
+                               else float(opts.turn_first_rad))
+        self.record_frames = bool(config.logging.record_frames if opts.record_frames is None else opts.record_frames)
+        self.rack_along_pipe_std_m = float(config.vision.rack_along_pipe_std_m if opts.rack_along_pipe_std_m is None
+                                           else opts.rack_along_pipe_std_m)
+        self.frame_gap_reset_s = float(config.vision.frame_gap_reset_s if opts.frame_gap_reset_s is None
+                                       else opts.frame_gap_reset_s)
+        vg = opts.visual_ground_z_ned_m if opts.visual_ground_z_ned_m is not None else \
+            config.camera.sim_ground_z_ned_m
+        self.visual_ground_z_ned_m: float | None = None if vg is None else float(vg)
 
     # ================================================================ lifecycle
     async def __aenter__(self) -> Daemon:
@@ -208,6 +225,9 @@ class Daemon:
         self._event("daemon-starting", flight=str(self.flight.path), camera=cfg.camera.kind,
                     mavlink=cfg.mavlink.url, vision=cfg.vision.source)
         try:
+            from companion.config import mission_limits
+
+            self.mission_limits = mission_limits(cfg)
             self._build_estimation()
             self._build_safety()
             await self._open_link()
@@ -402,6 +422,7 @@ class Daemon:
             "command_retries": cfg.mavlink.command_retries,
             "request_sim_state": cfg.camera.kind == "synthetic" and self.options.pose_source is None,
             "pose_message": "odometry" if cfg.mavlink.odometry else "vision",
+            "pose_stamp_base": cfg.mavlink.pose_stamp_base,
             "forward_urls": tuple(cfg.mavlink.gcs_forward),
         }
         if cfg.ekf_origin.enabled:
@@ -492,15 +513,17 @@ class Daemon:
             rack_config=rack_cfg,
             ground_config=ground_cfg,
             initial_T_ned_body=self.options.initial_T_ned_body,
-            rack_along_pipe_std_m=self.options.rack_along_pipe_std_m,
+            rack_std_floor=rack_std_floor_from_config(cfg.vision),
+            rack_along_pipe_std_m=self.rack_along_pipe_std_m,
         )
 
     async def _open_api(self) -> None:
         from drivers.api import ApiServer, default_validator
 
         cfg = self.config
-        server = ApiServer(cfg.api, store_dir=cfg.mission.upload_folder, validate=default_validator(),
-                           controller=_Controller(self), status_provider=self.status)
+        server = ApiServer(cfg.api, store_dir=cfg.mission.upload_folder,
+                           validate=default_validator(self.mission_limits), controller=_Controller(self),
+                           status_provider=self.status)
         await server.__aenter__()
         self.api_server = server
         self._event("api-listening", url=server.url)
@@ -572,7 +595,7 @@ class Daemon:
         z_cam_body = float(self.T_body_cam[2, 3])
         nf = self.nav_filter
         use_range = bool(getattr(nf.config, "use_range", True)) if nf is not None else True
-        vg = self.options.visual_ground_z_ned_m
+        vg = self.visual_ground_z_ned_m
         if vg is None and use_range and state is not None and state.rangefinder_m is not None:
             height = float(state.rangefinder_m) * math.cos(roll) * math.cos(pitch) - z_cam_body
         elif nf is not None:
@@ -607,7 +630,7 @@ class Daemon:
                     return
                 continue
             prev = self._latest_frame
-            if prev is not None and float(frame.stamp_s) - float(prev.stamp_s) > self.options.frame_gap_reset_s:
+            if prev is not None and float(frame.stamp_s) - float(prev.stamp_s) > self.frame_gap_reset_s:
                 # the tracker's own motion model is stale after a gap: restart it from the IMU-propagated filter
                 self._rack_reset_pending = True
             self._latest_frame = frame
@@ -667,7 +690,7 @@ class Daemon:
             self.counters.poses_withheld += 1
         if self._pending_photo is not None:
             self._take_photo_now(frame, nav)
-        if self.options.record_frames and self.flight is not None:
+        if self.record_frames and self.flight is not None:
             with contextlib.suppress(OSError):
                 self.flight.save_frame(frame.image, int(frame.seq), float(frame.stamp_s))
         record = FrameRecord(
@@ -690,15 +713,57 @@ class Daemon:
 
         if self._mission_active():
             raise MissionError(f"mission '{self.mission_id}' is still running; abort it first")
+        reason = None
         if not self._safety_view.allow_mission:
-            raise MissionError(f"safety forbids starting a mission ({self._safety_view.last_action})")
-        if self.link is None or self.link.state.last_autopilot_heartbeat_s is None:
-            raise MissionError("no autopilot on the link")
+            reason = f"safety forbids starting a mission ({self._safety_view.last_action})"
+        elif self.link is None or self.link.state.last_autopilot_heartbeat_s is None:
+            reason = "no autopilot on the link"
+        else:
+            reason = self.takeoff_refusal()
+        if reason is not None:
+            self._refuse_mission(mission_id, reason)
+            raise MissionError(f"mission '{mission_id}' refused: {reason}")
+        self.mission_refused = None
         self.executor = MissionExecutor(mission, T_ned_rack=self.T_ned_rack)
         self.mission_id = mission_id
         self._servo.reset() if self._servo is not None else None
         self.executor.start(self.clock.now())
         self._event("mission-start", mission=mission.name, id=mission_id, actions=len(mission.actions))
+
+    def takeoff_refusal(self) -> str | None:
+        """Why arming / taking off must not happen now, or None when it may.
+
+        The safety manager's ``allow_takeoff`` (autopilot link, battery low/critical, GCS link) from the
+        watchdog's last step, and a vision pose sent to the autopilot within ``safety.vision_loss_hover_ms``.
+        """
+        out = self.safety_output
+        if out is None:
+            return "safety watchdog has not evaluated the vehicle yet"
+        if not bool(out.allow_takeoff):
+            reasons = sorted(str(getattr(f, "value", f)) for f in out.faults)
+            state = self.link.state if self.link is not None else None
+            lim = self.config.safety
+            if state is not None and not any(r.startswith("battery") for r in reasons):
+                v, pct = state.battery_voltage_v, state.battery_remaining_pct
+                if (v is not None and v < lim.battery_low_v) or (pct is not None and pct < lim.battery_low_pct):
+                    # below the threshold but not yet debounced into a fault: still no take-off
+                    reasons.append(f"battery low ({'?' if v is None else f'{v:.2f}'} V, "
+                                   f"{'?' if pct is None else f'{pct:.0f}'} %)")
+            return f"safety forbids take-off ({', '.join(reasons) or out.message})"
+        max_age_s = float(self.config.safety.vision_loss_hover_ms) / 1000.0
+        sent = self.last_pose_sent_s
+        if sent is None or self.clock.now() - sent > max_age_s:
+            age = "never" if sent is None else f"{self.clock.now() - sent:.2f} s ago"
+            return f"no fresh vision pose (last sent {age}, limit {max_age_s:g} s)"
+        return None
+
+    def _refuse_mission(self, mission_id: str | None, reason: str) -> None:
+        """Record, log and tell the GCS why a mission (or its take-off) was refused."""
+        self.mission_refused = {"id": mission_id, "time_s": self.clock.now(), "reason": reason}
+        self._event("mission-refused", level=logging.WARNING, id=mission_id, reason=reason)
+        if self.link is not None:
+            with contextlib.suppress(Exception):
+                self.link.statustext(f"companion: mission refused: {reason}"[:200], "warning")
 
     def _nav_snapshot(self) -> Any:
         from companion.mission import NavSnapshot
@@ -757,6 +822,11 @@ class Daemon:
             elif self._last_command is not None and out.pending_request is None:
                 self.link.set_velocity_command(None)
                 self._last_command = None
+            if self._servo is not None:
+                # rate limiting continues from what the autopilot was actually given (post-filter), so a
+                # clamp that releases does not make the next command jump; nothing sent = at rest
+                sent = cmd if cmd is not None and out.pending_request is None else None
+                self._servo.record_sent(sent, now)
 
     def _turn_first(self, goal: Any, T_ned_body: FloatArray) -> FloatArray:
         """The pose to servo to now: for a large heading change, first turn in place, then go.
@@ -770,7 +840,7 @@ class Daemon:
         yaw_err = float(frames.wrap_angle(frames.yaw_from_rotation(T_goal[:3, :3])
                                           - frames.yaw_from_rotation(T_ned_body[:3, :3])))
         key = (goal.action_index, goal.action_id)
-        threshold = self.options.turn_first_rad
+        threshold = self.turn_first_rad
         if threshold <= 0.0:
             return T_goal
         if self._turn_key != key:
@@ -807,6 +877,14 @@ class Daemon:
         ok = True
         message = ""
         try:
+            if request.kind in (RequestKind.ARM, RequestKind.TAKEOFF):
+                refusal = self.takeoff_refusal()
+                if refusal is not None:
+                    self._refuse_mission(self.mission_id, f"{request.kind}: {refusal}")
+                    if request.kind is RequestKind.TAKEOFF and link.state.armed and self._landed():
+                        with contextlib.suppress(CompanionError):
+                            await link.disarm()
+                    raise MissionError(f"{request.kind} refused: {refusal}")
             if request.kind is RequestKind.ARM:
                 profile = link.profile
                 if profile is None:
@@ -908,27 +986,34 @@ class Daemon:
 
     # ================================================================ safety
     def _on_message(self, msg: Any) -> None:
-        name = msg.get_type()
-        if name == "EXTENDED_SYS_STATE":
-            self._landed_state = int(msg.landed_state)
-        elif name == "DISTANCE_SENSOR" and int(msg.orientation) == 25:  # MAV_SENSOR_ROTATION_PITCH_270: down
-            valid = msg.min_distance <= msg.current_distance <= msg.max_distance
-            if valid and self.nav_filter is not None:
-                try:
-                    self.nav_filter.add_range(msg.current_distance * 1e-2, self.clock.now())
-                except CompanionError as exc:
-                    self._event("range-rejected", level=logging.DEBUG, error=str(exc))
-        elif name == "DISTANCE_SENSOR" and int(msg.orientation) == 24:  # MAV_SENSOR_ROTATION_PITCH_90: upward
-            valid = msg.min_distance <= msg.current_distance <= msg.max_distance
-            self._ceiling_clearance_m = msg.current_distance * 1e-2 if valid else None
+        """Feeds new downward rangefinder readings to the filter; the link has decoded them into its state."""
+        if msg.get_type() != "DISTANCE_SENSOR" or self.link is None or self.nav_filter is None:
+            return
+        state = self.link.state
+        stamp = state.rangefinder_stamp_s
+        if state.rangefinder_m is None or stamp is None or stamp == self._range_stamp_s:
+            return  # another orientation, out of range, or already fed
+        self._range_stamp_s = stamp
+        try:
+            self.nav_filter.add_range(float(state.rangefinder_m), float(stamp))
+        except CompanionError as exc:
+            self._event("range-rejected", level=logging.DEBUG, error=str(exc))
+
+    def _ceiling_clearance(self) -> float | None:
+        """Upward rangefinder distance (m) from the link's state; None when unknown or older than 1 s."""
+        state = self.link.state if self.link is not None else None
+        if state is None or state.rangefinder_up_m is None or state.rangefinder_up_stamp_s is None:
+            return None
+        if self.clock.now() - float(state.rangefinder_up_stamp_s) > 1.0:
+            return None
+        return float(state.rangefinder_up_m)
 
     def _landed(self) -> bool:
+        """Disarmed, or armed with EXTENDED_SYS_STATE saying on the ground (unknown landed state: airborne)."""
         state = self.link.state if self.link is not None else None
         if state is None or not state.armed:
             return True
-        if self._landed_state is not None:
-            return self._landed_state in (0, 1)
-        return False
+        return bool(state.landed_state == "on_ground")
 
     def _safety_inputs(self) -> Any:
         from companion.safety import SafetyInputs
@@ -950,7 +1035,7 @@ class Daemon:
             battery_v=None if state is None else state.battery_voltage_v,
             battery_pct=None if state is None else state.battery_remaining_pct,
             altitude_m=altitude,
-            ceiling_clearance_m=self._ceiling_clearance_m,
+            ceiling_clearance_m=self._ceiling_clearance(),
             last_gcs_heartbeat_s=None if state is None else state.last_gcs_heartbeat_s,
             last_pose_s=self.last_fresh_pose_s,
             last_autopilot_heartbeat_s=None if state is None else state.last_autopilot_heartbeat_s,
@@ -1071,6 +1156,10 @@ class Daemon:
                 "actions": len(ex.mission.actions),
                 "done": len(ex.results),
             }
+        if self.mission_refused is not None:
+            if self.executor is None:
+                mission = {"state": "refused", "id": self.mission_refused["id"]}
+            mission["refused"] = self.mission_refused["reason"]
         pos = None if nav is None else [round(float(v), 3) for v in nav.position_ned_m]
         return {
             "daemon": {
@@ -1123,7 +1212,7 @@ class _Controller:
         if server is None:
             raise MissionError("control API not running")
         path = server.store.path(mission_id)
-        mission = load_mission(path)
+        mission = load_mission(path, limits=self._d.mission_limits)
         await self._d.start_mission(mission, mission_id)
 
     def _executor(self, mission_id: str | None) -> Any:
@@ -1145,8 +1234,10 @@ class _Controller:
 
 
 async def run_daemon(config: Any, config_path: Path | None = None, clock: Clock | None = None,
-                     record_frames: bool = False) -> int:
-    """`companion run`: start the daemon, wait for SIGTERM/SIGINT, stop gracefully; returns the exit code."""
+                     record_frames: bool | None = None) -> int:
+    """`companion run`: start the daemon, wait for SIGTERM/SIGINT, stop gracefully; returns the exit code.
+
+    record_frames: None keeps ``logging.record_frames`` of the config; True/False overrides it."""
     daemon = Daemon(config, clock=clock or SystemClock(), options=DaemonOptions(record_frames=record_frames))
     try:
         await daemon.start()

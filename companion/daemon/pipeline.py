@@ -17,6 +17,7 @@ the start pose, then the filter's estimate after it lost the rack.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +29,7 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import ConfigError
 from companion.geometry import frames
 
-__all__ = ["FrameInputs", "Measurement", "VisionPipeline"]
+__all__ = ["FrameInputs", "Measurement", "VisionPipeline", "rack_std_floor_from_config"]
 
 SOURCES = ("rack", "ground", "auto")
 
@@ -181,6 +182,13 @@ class _RackWithFloor:
     @property
     def T_rack_cam(self) -> FloatArray:
         return np.asarray(self.base.T_rack_cam, dtype=np.float64)
+
+
+def rack_std_floor_from_config(vision: Any) -> tuple[float, ...]:
+    """`VisionPipeline`'s ``rack_std_floor`` from the ``[vision]`` config section (m, m, m, rad, rad, rad)."""
+    floor_m = float(vision.rack_std_floor_m)
+    floor_rad = math.radians(float(vision.rack_std_floor_deg))
+    return (floor_m, floor_m, floor_m, floor_rad, floor_rad, floor_rad)
 
 
 def _default_rack_path() -> str:

@@ -22,7 +22,7 @@ import numpy as np
 
 from companion.checks import FloatArray
 from companion.daemon.flight import TumWriter, read_tum
-from companion.daemon.pipeline import FrameInputs, VisionPipeline
+from companion.daemon.pipeline import FrameInputs, VisionPipeline, rack_std_floor_from_config
 from companion.errors import ConfigError, InputError
 from companion.geometry import frames, se3
 
@@ -96,7 +96,9 @@ def replay_folder(folder: Path, config: Any, out_dir: Path, overlay: bool = True
     T0 = _interp_pose(rec_t, rec_T, stamps[0])
     pipeline = VisionPipeline(source=config.vision.source, camera=camera, T_body_cam=T_body_cam,
                               T_ned_rack=T_ned_rack, rack_model=rack_model, rack_config=rack_cfg,
-                              ground_config=ground_cfg, initial_T_ned_body=T0)
+                              ground_config=ground_cfg, initial_T_ned_body=T0,
+                              rack_std_floor=rack_std_floor_from_config(config.vision),
+                              rack_along_pipe_std_m=config.vision.rack_along_pipe_std_m)
     model = pipeline.rack_tracker.model if pipeline.rack_tracker is not None else None
     lines = _pipe_polylines(model) if model is not None else []
     ground_z = float(dict(config.filter.params).get("ground_z_ned_m", 0.0))

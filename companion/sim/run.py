@@ -32,8 +32,8 @@ from companion.clock import Clock, SystemClock
 from companion.errors import CompanionError, InputError
 from companion.sim.report import ActionResult, SafetyEventRecord, SimRecord, build_report, plot_trajectory
 
-__all__ = ["FAULT_KINDS", "FaultSpec", "SimOptions", "SimResult", "parse_fault_spec", "run_sim", "run_sim_cli",
-           "sim_config"]
+__all__ = ["FAULT_KINDS", "FaultSpec", "SimOptions", "SimResult", "collect_frames", "parse_fault_spec", "run_sim",
+           "run_sim_cli", "sim_config"]
 
 FAULT_KINDS = ("battery-sag", "battery-critical", "gcs-loss", "vision-loss", "link-loss", "camera-unplug", "ceiling")
 CAMERA_FAULTS = ("vision-loss", "camera-unplug")
@@ -115,7 +115,7 @@ class SimOptions:
     wind: bool = True
     wind_m_s: float = 2.0
     speed: float = 1.0
-    rack_along_pipe_std_m: float = 0.0
+    rack_along_pipe_std_m: float | None = None  # None: vision.rack_along_pipe_std_m of the config
     config_overrides: dict[str, Any] = field(default_factory=dict)
 
 
@@ -161,6 +161,7 @@ def _progress_line(elapsed_s: float, daemon: Any, truth: Any) -> str:
 
 async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = None) -> SimResult:
     """Fly `options`' mission in the simulator; returns the record and the report (files written)."""
+    from companion.config import mission_limits
     from companion.daemon.app import Daemon, DaemonOptions
     from companion.data import data_path
     from companion.mission import State, load_mission
@@ -174,8 +175,8 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     out_dir = options.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     mission_path = options.mission_path or data_path("missions/rack_sweep.xml")
-    mission = load_mission(mission_path)
     config = sim_config(out_dir, options.config_overrides)
+    mission = load_mission(mission_path, limits=mission_limits(config))  # the vehicle's ceiling and speed
     camera_model = load_camera_model(config.camera)
     record = SimRecord(mission_name=mission.name, autopilot=options.autopilot,
                        faults=[f.text() for f in options.faults])
@@ -258,7 +259,8 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                     detail=str(ev["message"])))
             _collect_results(daemon, record, ap)
             vpe = ap.received_of("VISION_POSITION_ESTIMATE")
-            _collect_frames(frames_seen, render, vpe, boot_s, record, speed)
+            collect_frames(frames_seen, render, vpe, boot_s, record, speed,
+                            stamp_base=link.pose_time_base or "autopilot")
     report = build_report(record)
     nf = daemon.nav_filter
     if nf is not None:
@@ -308,13 +310,15 @@ def _collect_results(daemon: Any, record: SimRecord, ap: Any) -> None:
                                            seconds=float(r.seconds), goal_ned_m=goal, true_error_m=err))
 
 
-def _collect_frames(frames_seen: list[Any], render: Any, vpe: list[Any], boot_s: float, record: SimRecord,
-                    speed: float = 1.0) -> None:
+def collect_frames(frames_seen: list[Any], render: Any, vpe: list[Any], boot_s: float, record: SimRecord,
+                    speed: float = 1.0, stamp_base: str = "autopilot") -> None:
     """Estimates, frame stamps and capture -> autopilot-socket latencies (wall ms) from the daemon's frames.
 
     A frame is "captured" when the renderer has finished the image (a real camera's frame exists once
     read out); the latency ends when the VISION_POSITION_ESTIMATE carrying its stamp was read from the
-    autopilot's socket. Clock seconds are divided by `speed` to give wall time.
+    autopilot's socket. Clock seconds are divided by `speed` to give wall time. `stamp_base` is the
+    link's pose time base (`MavLink.pose_time_base`): "autopilot" stamps count from the fake
+    autopilot's boot (`boot_s` on our clock), "local" ones are our clock's (PX4 by default).
     """
     sent_by_stamp: dict[int, Any] = {}
     for fr in frames_seen:
@@ -330,7 +334,7 @@ def _collect_frames(frames_seen: list[Any], render: Any, vpe: list[Any], boot_s:
     done = render.done_clock_s
     for msg in vpe:
         record.pose_message_stamps_s.append(float(msg.time_s))
-        stamp_s = float(msg.fields["usec"]) * 1e-6 + boot_s  # the link converts to the autopilot's time base
+        stamp_s = float(msg.fields["usec"]) * 1e-6 + (boot_s if stamp_base == "autopilot" else 0.0)
         fr = sent_by_stamp.get(round(stamp_s * 1e3))
         if fr is None:
             for k in (-1, 1):

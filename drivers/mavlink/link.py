@@ -72,6 +72,8 @@ DEFAULT_MESSAGE_RATES_HZ: Mapping[str, float] = MappingProxyType(
 # If the autopilot refuses a stream, ask for these instead (same information, other message).
 _INTERVAL_FALLBACKS: Mapping[str, tuple[str, ...]] = MappingProxyType({"HIGHRES_IMU": ("SCALED_IMU",)})
 
+POSE_STAMP_BASES = ("auto", "autopilot", "local")
+
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -92,12 +94,15 @@ class LinkConfig:
     rates; ``request_sim_state`` adds SIM_STATE (simulator truth). ``forward_urls``: GCS endpoints
     that get every autopilot frame and whose frames go to the autopilot.
 
-    ``pose_stamp_base``: time base of the pose ``usec`` field. "autopilot" (default): the capture
-    time converted to the autopilot's clock once TIMESYNC converged (ours if it never answers).
-    "local": always our monotonic capture time. PX4 wants "local": its receiver converts ``usec``
-    with its *own* TIMESYNC offset (the requests we answer), so an already converted stamp is
-    shifted twice once PX4's estimate has converged. ArduPilot accepts either (it estimates the
-    offset of the stamps itself).
+    ``pose_stamp_base``: time base of the pose ``usec`` field. "autopilot": the capture time
+    converted to the autopilot's clock once TIMESYNC converged (ours if it never answers).
+    "local": always our monotonic capture time. "auto" (default): "local" when the autopilot is PX4,
+    "autopilot" otherwise (ArduPilot, unknown), decided once the autopilot's profile is known (forced
+    by ``autopilot_profile`` or detected from its heartbeat). PX4 wants "local": its receiver
+    (``MavlinkReceiver::handle_message_vision_position_estimate``) passes ``usec`` through
+    ``Timesync::sync_stamp``, which adds its *own* TIMESYNC offset (from the requests we answer) once
+    converged and uses the arrival time before, so an already converted stamp is shifted twice.
+    ArduPilot accepts either (it estimates the offset of the stamps itself).
     """
 
     url: str
@@ -122,7 +127,7 @@ class LinkConfig:
     pose_message: str = "vision"
     send_vision_speed: bool = True
     pose_max_age_s: float = 0.5
-    pose_stamp_base: str = "autopilot"
+    pose_stamp_base: str = "auto"
     setpoint_rate_hz: float = 20.0
     forward_urls: tuple[str, ...] = ()
     accept_mavlink1: bool = False
@@ -140,8 +145,10 @@ class LinkConfig:
                 profile_named(self.autopilot_profile)
             except InputError as exc:
                 raise ConfigError(f"link.autopilot_profile: {exc}") from None
-        if self.pose_stamp_base not in ("autopilot", "local"):
-            raise ConfigError(f"link.pose_stamp_base must be 'autopilot' or 'local', got {self.pose_stamp_base!r}")
+        if self.pose_stamp_base not in POSE_STAMP_BASES:
+            raise ConfigError(
+                f"link.pose_stamp_base must be one of {', '.join(POSE_STAMP_BASES)}, got {self.pose_stamp_base!r}"
+            )
         if self.pose_message not in ("vision", "odometry"):
             raise ConfigError(f"link.pose_message must be 'vision' or 'odometry', got {self.pose_message!r}")
         if self.setpoint_rate_hz < 10.0:
@@ -425,9 +432,17 @@ class MavLink:
 
     def _pose_time_base(self, now: float) -> str | None:
         """ "autopilot" once TIMESYNC converged, "local" if it did not within ``timesync_fallback_s`` of the
-        autopilot appearing (or is disabled), None while undecided. Decided once: the stamps never jump."""
+        autopilot appearing (or is disabled), None while undecided. Decided once: the stamps never jump.
+        With ``pose_stamp_base="auto"`` a PX4 gets "local" and anything else the TIMESYNC rule; undecided
+        until the autopilot is known."""
         if self._pose_base is None:
-            if self.config.pose_stamp_base == "local":
+            wanted = self.config.pose_stamp_base
+            if wanted == "auto":
+                profile = self.profile
+                if profile is None and self.state.last_autopilot_heartbeat_s is None:
+                    return None
+                wanted = "local" if profile is not None and profile.name == "px4" else "autopilot"
+            if wanted == "local":
                 self._pose_base = "local"
             elif self._timesync.converged:
                 self._pose_base = "autopilot"

@@ -33,6 +33,7 @@ MAV_AUTOPILOT_INVALID = 8
 # Vehicle types that never are the flight controller we talk to.
 _NON_AUTOPILOT_TYPES = frozenset({6, 18, 26, 27, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39, 40, 41, 42, 43})
 MAV_SENSOR_ROTATION_PITCH_270 = 25  # downward-facing rangefinder
+MAV_SENSOR_ROTATION_PITCH_90 = 24  # upward-facing rangefinder (distance to a ceiling)
 G_M_S2 = 9.80665
 EARTH_RADIUS_M = 6378137.0
 UINT16_MAX = 65535
@@ -119,7 +120,10 @@ class VehicleState:
     """Snapshot of what the autopilot told us, SI units; ``*_stamp_s`` are local receive times (s).
 
     Vectors are read-only float64 arrays. None means "never received". ``landed_state`` is
-    "on_ground" | "in_air" | "takeoff" | "landing" (EXTENDED_SYS_STATE).
+    "on_ground" | "in_air" | "takeoff" | "landing" (EXTENDED_SYS_STATE; None while unknown or
+    MAV_LANDED_STATE_UNDEFINED). ``rangefinder_m`` is the downward DISTANCE_SENSOR (PITCH_270) and
+    ``rangefinder_up_m`` the upward one (PITCH_90, clearance to a ceiling), both None when the last
+    reading was out of the sensor's range; their ``*_stamp_s`` is the receive time of that reading.
     """
 
     autopilot: str | None = None
@@ -147,6 +151,8 @@ class VehicleState:
     battery_stamp_s: float | None = None
     rangefinder_m: float | None = None
     rangefinder_stamp_s: float | None = None
+    rangefinder_up_m: float | None = None
+    rangefinder_up_stamp_s: float | None = None
     ekf_flags: int | None = None
     ekf_stamp_s: float | None = None
     ekf_origin_set: bool = False
@@ -309,11 +315,16 @@ class StateTracker:
         self._set(**values)
 
     def _distance_sensor(self, msg: Any, now_s: float) -> None:
-        if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
+        orientation = int(msg.orientation)
+        if orientation not in (MAV_SENSOR_ROTATION_PITCH_270, MAV_SENSOR_ROTATION_PITCH_90):
             return
         distance_cm = int(msg.current_distance)
         valid = msg.min_distance <= distance_cm <= msg.max_distance and distance_cm != UINT16_MAX
-        self._set(rangefinder_m=distance_cm * 1e-2 if valid else None, rangefinder_stamp_s=now_s)
+        distance_m = distance_cm * 1e-2 if valid else None
+        if orientation == MAV_SENSOR_ROTATION_PITCH_270:
+            self._set(rangefinder_m=distance_m, rangefinder_stamp_s=now_s)
+        else:
+            self._set(rangefinder_up_m=distance_m, rangefinder_up_stamp_s=now_s)
 
     def _extended_sys_state(self, msg: Any, now_s: float) -> None:
         self._set(landed_state=_LANDED_STATES.get(int(msg.landed_state)))

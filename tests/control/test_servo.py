@@ -159,6 +159,25 @@ def test_controller_gap_restarts_from_rest_and_steps_are_bounded() -> None:
     assert late.vx_m_s == pytest.approx(-0.1 + 0.2)
 
 
+def test_controller_ramps_from_the_sent_command_when_a_clamp_releases() -> None:
+    """A safety filter clamps the climb to 0; once released, the climb ramps from 0, not from the clamped-away value."""
+    ctl = ServoController(ServoGains(max_accel_m_s2=1.0, max_vertical_speed_m_s=0.5))
+    T, T_goal = pose(0, 0, -2, 0), pose(0, 0, -8, 0)  # 6 m up
+    for k in range(10):
+        cmd = ctl.update(T, T_goal, now_s=0.1 * k)
+        assert cmd.vz_m_s < 0.0  # the law wants to climb ...
+        ctl.record_sent(VelocityCommand(cmd.vx_m_s, cmd.vy_m_s, 0.0, cmd.yaw_rate_rad_s), 0.1 * k)  # ... clamped
+    assert ctl.previous is not None and ctl.previous.vz_m_s == 0.0
+    released = ctl.update(T, T_goal, now_s=1.0)
+    assert released.vz_m_s == pytest.approx(-0.1)  # one acceleration step from what was sent
+    ctl.record_sent(None, 1.1)  # nothing sent (stream stopped): at rest
+    assert ctl.update(T, T_goal, now_s=1.2).vz_m_s == pytest.approx(-0.1)
+    with pytest.raises(InputError):
+        ctl.record_sent((0.0, 0.0, 0.0, 0.0), 1.3)  # type: ignore[arg-type]
+    with pytest.raises(InputError):
+        ctl.record_sent(None, math.nan)
+
+
 def test_bad_gains_and_inputs_rejected() -> None:
     with pytest.raises(InputError, match="max_speed_m_s"):
         ServoGains(max_speed_m_s=0.0)

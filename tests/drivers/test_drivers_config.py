@@ -19,6 +19,7 @@ from companion.config import (
     check_config_cli,
     default_config,
     load_config,
+    mission_limits,
     parse_config,
 )
 from companion.errors import ConfigError
@@ -142,6 +143,15 @@ def test_mount_and_rack_transforms() -> None:
         ({"logging": {"level": "verbose"}}, "logging.level: must be"),
         ({"filter": {"no_such_param": 1}}, "filter.no_such_param: unknown key"),
         ({"vision": {"rack_tracker": {"no_such": 1}}}, "vision.rack_tracker.no_such: unknown key"),
+        ({"mavlink": {"pose_stamp_base": "gps"}}, "mavlink.pose_stamp_base: must be"),
+        ({"camera": {"sim_ground_z_ned_m": 4.0}}, "camera.sim_ground_z_ned_m: only valid with kind"),
+        ({"vision": {"rack_std_floor_m": -0.01}}, "vision.rack_std_floor_m: must be >= 0"),
+        ({"vision": {"rack_std_floor_deg": 90}}, "vision.rack_std_floor_deg: must be in [0, 45], got 90"),
+        ({"vision": {"rack_along_pipe_std_m": -1}}, "vision.rack_along_pipe_std_m: must be >= 0"),
+        ({"vision": {"frame_gap_reset_s": 0}}, "vision.frame_gap_reset_s: must be > 0"),
+        ({"mission": {"turn_first_deg": 200}}, "mission.turn_first_deg: must be in [0, 180], got 200"),
+        ({"logging": {"record_frames": "yes"}}, "logging.record_frames: must be a boolean"),
+        ({"safety": {"ceiling_m": 0.1}}, "safety.ceiling_m: MissionLimits.min_height_m must be below ceiling_m"),
     ],
 )
 def test_bad_values_and_unknown_keys_name_the_key(data: dict[str, Any], message: str) -> None:
@@ -179,6 +189,12 @@ def test_build_dataclass_reports_unknown_keys_and_builds_nested_tables() -> None
 def test_example_file_is_valid(tmp_path: Path) -> None:
     config = load_config(EXAMPLE)
     assert config.camera.kind == "v4l2" and config.api.bind == "127.0.0.1"
+    defaults = default_config()
+    assert config.mavlink.pose_stamp_base == defaults.mavlink.pose_stamp_base == "auto"
+    for key in ("rack_std_floor_m", "rack_std_floor_deg", "rack_along_pipe_std_m", "frame_gap_reset_s"):
+        assert getattr(config.vision, key) == getattr(defaults.vision, key), key  # documented with its default
+    assert config.mission.turn_first_deg == defaults.mission.turn_first_deg
+    assert config.logging.record_frames is defaults.logging.record_frames is False
     code, message = check_config_cli(EXAMPLE)
     assert code == 0 and message.splitlines()[0].endswith("api 127.0.0.1:8765)")
 
@@ -214,3 +230,41 @@ def test_partial_file_keeps_defaults(tmp_path: Path) -> None:
     config = load_config(path)
     assert config.mavlink.url == "udpin:127.0.0.1:14550" and config.camera.kind == "synthetic"
     assert config.safety == default_config().safety
+
+
+def test_mission_limits_follow_the_safety_and_mission_sections() -> None:
+    limits = mission_limits(parse_config({"safety": {"ceiling_m": 3.5, "max_speed_m_s": 0.8},
+                                          "mission": {"speed_limit_m_s": 0.6}}))
+    assert limits.ceiling_m == 3.5 and limits.max_speed_m_s == 0.6
+    limits = mission_limits(parse_config({"safety": {"max_speed_m_s": 0.4}}))
+    assert limits.ceiling_m == 8.0 and limits.max_speed_m_s == 0.4
+
+
+def test_mission_above_the_configured_ceiling_is_rejected(tmp_path: Path) -> None:
+    from companion.mission import MissionError, load_mission
+
+    path = tmp_path / "high.xml"
+    path.write_text("""<?xml version="1.0" encoding="UTF-8"?>
+<mission version="1" name="high" frame="ned" timeout="30" speed="0.5" threshold="0.1" yaw-threshold="5">
+  <takeoff id="takeoff" height="5.0"/>
+  <land id="land"/>
+</mission>
+""")
+    assert load_mission(path).name == "high"  # the parser's default ceiling is 10 m
+    with pytest.raises(MissionError, match="height"):
+        load_mission(path, limits=mission_limits(parse_config({"safety": {"ceiling_m": 4.0}})))
+
+
+def test_daemon_only_options_have_config_keys() -> None:
+    config = parse_config({
+        "camera": {"kind": "synthetic", "sim_ground_z_ned_m": 4.0},
+        "vision": {"rack_std_floor_m": 0.02, "rack_std_floor_deg": 1.0, "rack_along_pipe_std_m": 0.05,
+                   "frame_gap_reset_s": 0.5},
+        "mission": {"turn_first_deg": 0},
+        "logging": {"record_frames": True},
+        "mavlink": {"pose_stamp_base": "local"},
+    })
+    assert config.camera.sim_ground_z_ned_m == 4.0 and config.vision.rack_along_pipe_std_m == 0.05
+    assert config.vision.rack_std_floor_deg == 1.0 and config.vision.frame_gap_reset_s == 0.5
+    assert config.mission.turn_first_deg == 0.0 and config.logging.record_frames
+    assert config.mavlink.pose_stamp_base == "local"

@@ -272,6 +272,52 @@ async def test_pose_stamp_base_local_sends_capture_time_on_our_clock(clock_peer:
         LinkConfig(url=peer.url, pose_stamp_base="gps")
 
 
+async def test_pose_stamp_base_auto_is_local_for_px4(clock_peer: Any) -> None:
+    """PX4's receiver runs ``usec`` through its own TIMESYNC offset (sync_stamp): "auto" sends our clock."""
+    clock, peer = clock_peer
+    peer.autopilot = mavlink.MAV_AUTOPILOT_PX4
+    assert LinkConfig(url=peer.url).pose_stamp_base == "auto"
+    async with MavLink(LinkConfig(url=peer.url), clock=clock) as link:
+        assert not link.send_pose(_pose(clock.now()))  # autopilot unknown: undecided
+        await _connected(clock, peer, link)
+        await clock.advance(0.5, step_s=0.02)
+        assert link.time_offset_s == pytest.approx(peer.time_offset_s, abs=0.02)  # converged, yet not used
+        stamp = clock.now() - 0.01
+        assert link.send_pose(_pose(stamp)) and link.pose_time_base == "local"
+        await clock.advance(0.02)
+        assert peer.of_type("VISION_POSITION_ESTIMATE")[0].msg.usec == round(stamp * 1e6)
+
+
+async def test_pose_stamp_base_auto_is_autopilot_for_ardupilot(clock_peer: Any) -> None:
+    clock, peer = clock_peer
+    async with MavLink(LinkConfig(url=peer.url), clock=clock) as link:
+        await _connected(clock, peer, link)
+        await clock.advance(0.5, step_s=0.02)
+        stamp = clock.now() - 0.01
+        assert link.send_pose(_pose(stamp)) and link.pose_time_base == "autopilot"
+        await clock.advance(0.02)
+        usec = peer.of_type("VISION_POSITION_ESTIMATE")[0].msg.usec
+        assert usec / 1e6 == pytest.approx(stamp + peer.time_offset_s, abs=0.02)
+
+
+async def test_pose_stamp_base_explicit_autopilot_overrides_px4_detection(clock_peer: Any) -> None:
+    clock, peer = clock_peer
+    peer.autopilot = mavlink.MAV_AUTOPILOT_PX4
+    async with MavLink(LinkConfig(url=peer.url, pose_stamp_base="autopilot"), clock=clock) as link:
+        await _connected(clock, peer, link)
+        await clock.advance(0.5, step_s=0.02)
+        assert link.send_pose(_pose(clock.now() - 0.01)) and link.pose_time_base == "autopilot"
+
+
+async def test_landed_state_and_rangefinders_are_requested(clock_peer: Any) -> None:
+    clock, peer = clock_peer
+    async with MavLink(LinkConfig(url=peer.url), clock=clock) as link:
+        await _connected(clock, peer, link)
+        await clock.advance(1.0, step_s=0.05)
+        requested = {int(r.msg.param1) for r in peer.of_type("COMMAND_LONG") if r.msg.command == 511}
+        assert {mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR} <= requested
+
+
 async def test_tlog_on_a_full_disk_does_not_stop_the_link(clock_peer: Any) -> None:
     if not Path("/dev/full").exists():
         pytest.skip("needs /dev/full")

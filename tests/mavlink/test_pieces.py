@@ -250,3 +250,26 @@ def test_state_tracker_ignores_other_systems_and_px4_modes() -> None:
 def test_ned_geodetic_round_trip() -> None:
     lat, lon, alt = geodetic_from_ned([120.0, -80.0, -15.0], 45.0, 7.0, 300.0)
     np.testing.assert_allclose(ned_from_geodetic(lat, lon, alt, 45.0, 7.0, 300.0), [120.0, -80.0, -15.0], atol=1e-9)
+
+
+def test_state_tracker_upward_and_downward_rangefinders_and_landed_state() -> None:
+    ap = mavlink.MAVLink(None, 1, 1)
+    tracker = StateTracker()
+    msgs = _frames(
+        ap,
+        ap.heartbeat_encode(2, 3, 0, 0, 4),
+        ap.distance_sensor_encode(10, 10, 4000, 180, 0, 0, 24, 0),  # PITCH_90: up
+        ap.distance_sensor_encode(10, 10, 4000, 250, 0, 1, 25, 0),  # PITCH_270: down
+        ap.distance_sensor_encode(10, 10, 4000, 90, 0, 2, 0, 0),  # forward: ignored
+        ap.extended_sys_state_encode(0, mavlink.MAV_LANDED_STATE_IN_AIR),
+    )
+    for m in msgs:
+        tracker.apply(m, 20.0)
+    s = tracker.snapshot()
+    assert s.rangefinder_up_m == pytest.approx(1.8) and s.rangefinder_up_stamp_s == 20.0
+    assert s.rangefinder_m == pytest.approx(2.5) and s.rangefinder_stamp_s == 20.0
+    assert s.landed_state == "in_air"
+    tracker.apply(_frames(ap, ap.distance_sensor_encode(11, 10, 4000, 5000, 0, 0, 24, 0))[0], 21.0)  # out of range
+    s = tracker.snapshot()
+    assert s.rangefinder_up_m is None and s.rangefinder_up_stamp_s == 21.0
+    assert s.rangefinder_m == pytest.approx(2.5)
