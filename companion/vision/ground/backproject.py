@@ -1,0 +1,61 @@
+"""Image features -> ground plane, in the gravity-aligned, yaw-free body frame (paper eqs. 1-11).
+
+The paper writes the camera as a chain of Euler rotations with the optical axis on the vehicle's
+z axis. Here the same ray-plane intersection is written in the project frames:
+
+    level frame L: origin at the body origin, z along NED down, x/y = body forward/right rotated
+                   by -roll/-pitch only (yaw-free), i.e. R_ned_L = Rz(yaw), R_L_body = Ry(pitch) Rx(roll)
+    ray in L:      r_L = R_L_body R_body_cam r_cam  (r_cam: undistorted unit ray, OpenCV optical frame)
+    ground point:  p_L = R_L_body t_body_cam + (h / r_L.z) r_L   with h = camera height above ground
+
+so a ground point g (NED, horizontal) seen at time k satisfies g = t_k + R(yaw_k) q_k with
+q_k = p_L[:2], which is the paper's eq. 11 with (alpha, beta) = q_k.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.geometry.frames import rotation_from_euler_zyx
+from companion.vision.ground.matching import BoolArray
+
+# Rays closer to the horizon than this (cosine of the angle to the vertical) are not used.
+MIN_RAY_DOWN_COS = 0.1
+
+
+def level_from_body(roll_rad: float, pitch_rad: float) -> FloatArray:
+    """R_L_body = Ry(pitch) Rx(roll): body FRD to the yaw-free gravity-aligned frame."""
+    R: FloatArray = rotation_from_euler_zyx(roll_rad, pitch_rad, 0.0)
+    return R
+
+
+def ground_points_level(
+    rays_cam: FloatArray,
+    height_m: float,
+    roll_rad: float,
+    pitch_rad: float,
+    T_body_cam: FloatArray,
+) -> tuple[FloatArray, BoolArray]:
+    """Horizontal ground points q (N, 2) in the level frame L (metres, relative to the body origin).
+
+    `rays_cam` (N, 3): rays in the camera frame (any positive scale). `height_m`: height of the
+    camera's optical centre above the ground. Returns q and a mask of rays that hit the ground in
+    front of the camera (q is NaN elsewhere).
+    """
+    R_L_body = level_from_body(roll_rad, pitch_rad)
+    R_L_cam = R_L_body @ T_body_cam[:3, :3]
+    r_L = rays_cam @ R_L_cam.T
+    norm = np.sqrt(np.einsum("ij,ij->i", r_L, r_L))
+    valid: BoolArray = r_L[:, 2] > MIN_RAY_DOWN_COS * norm
+    scale = np.where(valid, height_m / np.where(valid, r_L[:, 2], 1.0), np.nan)
+    offset = R_L_body @ T_body_cam[:3, 3]
+    q = r_L[:, :2] * scale[:, None] + offset[:2]
+    return q, valid
+
+
+def rays_from_pixels(fx: float, fy: float, cx: float, cy: float, skew: float, uv_px: FloatArray) -> FloatArray:
+    """Rays (N, 3) (x/z, y/z, 1) of pixels for a camera without distortion (fast path)."""
+    y = (uv_px[:, 1] - cy) / fy
+    x = (uv_px[:, 0] - cx - skew * y) / fx
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
