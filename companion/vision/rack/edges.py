@@ -1,0 +1,106 @@
+"""1-D edge search along the image normal of rendered limbs, all samples in one `cv2.remap`.
+
+For every sample the image is read along its normal at integer offsets k = -R..R px (tangent-
+averaged over three parallel lines), the derivative g_k = I(k+1) - I(k-1) is formed, candidates
+of the expected polarity are scored by |g| times a Gaussian prior on the distance, and the best
+one is refined to sub-pixel precision with a parabola. The measurement is the signed distance
+(px) along the normal from the rendered sample to the image edge. A bounded range and the
+polarity keep the search from jumping to a neighbouring pipe (the facing limb across a gap has
+the opposite polarity). Pixels follow OpenCV (integer coordinates are pixel centres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.checks import FloatArray
+
+BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
+
+
+@dataclass(frozen=True)
+class EdgeMeasurements:
+    """Per sample (N): signed offset along the normal (px), found flag, gradient sign and strength."""
+
+    offset_px: FloatArray
+    found: BoolArray
+    sign: FloatArray
+    strength: FloatArray
+
+
+def search_edges(
+    image_f32: np.ndarray[Any, np.dtype[np.float32]],
+    uv: FloatArray,
+    normal: FloatArray,
+    polarity: FloatArray,
+    range_px: int,
+    threshold: float,
+    prior_sigma_px: float | None = None,
+    tangent_offset_px: float = 0.0,
+    forward_difference: bool = False,
+) -> EdgeMeasurements:
+    """Search edges for N samples at `uv` (N, 2) along unit `normal` (N, 2).
+
+    `polarity` (N,) is +1/-1 to accept only gradients of that sign along the normal (intensity
+    increasing / decreasing outward), 0 to accept both. `threshold` is the minimum |g| (grey
+    levels per 2 px). With `tangent_offset_px` > 0 the profile is the mean of three parallel
+    lines that far apart (noise reduction without pre-blurring the image). With
+    `forward_difference` the derivative is I(k+1) - I(k), located at k + 1/2 (less biased by
+    shading ramps next to a sharp silhouette than the central difference).
+    """
+    n = uv.shape[0]
+    R = int(range_px)
+    if n == 0:
+        z = np.zeros(0)
+        return EdgeMeasurements(offset_px=z, found=np.zeros(0, dtype=bool), sign=z, strength=z)
+    k = np.arange(-R - 1, R + 2, dtype=np.float32)  # 2R + 3 positions
+    taps = (
+        np.array([-tangent_offset_px, 0.0, tangent_offset_px], dtype=np.float32)
+        if tangent_offset_px > 0
+        else np.zeros(1, dtype=np.float32)
+    )
+    n_taps = taps.size
+    nrm = normal.astype(np.float32)
+    tan = np.stack([-nrm[:, 1], nrm[:, 0]], axis=1)
+    base = uv.astype(np.float32)
+    # positions (N, 3, 2R+3, 2)
+    pos = (
+        base[:, None, None, :]
+        + taps[None, :, None, None] * tan[:, None, None, :]
+        + k[None, None, :, None] * nrm[:, None, None, :]
+    )
+    mx = np.ascontiguousarray(pos[..., 0].reshape(n * n_taps, -1))
+    my = np.ascontiguousarray(pos[..., 1].reshape(n * n_taps, -1))
+    prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if n_taps > 1:
+        prof = prof.reshape(n, n_taps, -1).mean(axis=1)
+    if forward_difference:
+        g = prof[:, 2:] - prof[:, 1:-1]  # (N, 2R+1) at k + 1/2, k = -R..R
+    else:
+        g = prof[:, 2:] - prof[:, :-2]  # (N, 2R+1) at k = -R..R
+    pol = np.asarray(polarity, dtype=np.float32)
+    signed = np.where(pol[:, None] != 0.0, g * pol[:, None], np.abs(g))
+    sigma = float(prior_sigma_px) if prior_sigma_px is not None else max(float(R), 1.0)
+    kk = np.arange(-R, R + 1, dtype=np.float32)
+    prior = np.exp(-0.5 * (kk / sigma) ** 2)
+    score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
+    best = np.argmax(score, axis=1)
+    rows = np.arange(n)
+    found = (score[rows, best] > 0.0) & (best > 0) & (best < 2 * R)
+    b = np.clip(best, 1, 2 * R - 1) if R >= 1 else best
+    s_m, s_0, s_p = signed[rows, b - 1], signed[rows, b], signed[rows, b + 1]
+    den = s_m - 2.0 * s_0 + s_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(den < -1e-6, 0.5 * (s_m - s_p) / den, 0.0)
+    frac = np.clip(frac, -0.5, 0.5)
+    offset = (b - R).astype(np.float64) + frac + (0.5 if forward_difference else 0.0)
+    return EdgeMeasurements(
+        offset_px=offset,
+        found=np.asarray(found),
+        sign=np.sign(g[rows, b]).astype(np.float64),
+        strength=np.abs(g[rows, b]).astype(np.float64),
+    )

@@ -1,0 +1,266 @@
+"""Visible limbs of the pipes (Lippiello & Cacace eq. 10-14), clipping, sampling and occlusion.
+
+All functions are vectorized over pipes and samples. Frames: `rack` (the paper's P) and `cam`
+(OpenCV optical). `T_rack_cam` is the camera pose in the rack frame. Lengths in metres, pixels
+follow OpenCV (integer coordinates are pixel centres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.model import PipeArrays
+
+IntArray = np.ndarray[Any, np.dtype[np.intp]]
+BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
+
+
+@dataclass(frozen=True)
+class LimbLines:
+    """The two visible limb lines of each pipe seen from the camera centre (L = 2 M lines).
+
+    Line l is `point[l] + s * direction[l]` (rack frame, m) for s in [s_min[l], s_max[l]]
+    (the part on the pipe; not clipped to the image). Line 2 m is the side R(v, +β) u of
+    pipe m (eq. 13), line 2 m + 1 the side R(v, -β) u (eq. 14). `outward[l]` is the unit
+    surface normal at the limb (rack frame). `valid[l]` is false when the camera is inside
+    the pipe's cylinder.
+    """
+
+    point: FloatArray
+    direction: FloatArray
+    outward: FloatArray
+    s_min: FloatArray
+    s_max: FloatArray
+    valid: BoolArray
+
+
+def limb_lines(o_rack: FloatArray, pipes: PipeArrays) -> LimbLines:
+    """Limb lines of every pipe seen from camera centre `o_rack` (3,) (eq. 10-14)."""
+    c, v, r = pipes.starts, pipes.directions, pipes.radii
+    a = np.einsum("mi,mi->m", o_rack[None, :] - c, v)  # axial coordinate of the camera centre
+    p_axis = c + a[:, None] * v  # eq. 10: closest axis point to the camera
+    to_axis = p_axis - o_rack[None, :]
+    l = np.linalg.norm(to_axis, axis=1)
+    valid = l > r * (1.0 + 1e-9)
+    ls = np.where(valid, l, 1.0)
+    u = to_axis / ls[:, None]  # eq. 11
+    beta = np.arcsin(np.clip(r / ls, 0.0, 1.0))
+    delta = np.sqrt(np.maximum(ls * ls - r * r, 0.0))  # eq. 12
+    vxu = np.cross(v, u)
+    cb, sb = np.cos(beta), np.sin(beta)
+    dir_l = cb[:, None] * u + sb[:, None] * vxu  # R(v, +β) u (u ⟂ v)
+    dir_r = cb[:, None] * u - sb[:, None] * vxu  # R(v, -β) u
+    p_l = o_rack + delta[:, None] * dir_l  # eq. 13
+    p_r = o_rack + delta[:, None] * dir_r  # eq. 14
+    point = np.empty((2 * c.shape[0], 3))
+    point[0::2] = p_l
+    point[1::2] = p_r
+    outward = (point - np.repeat(p_axis, 2, axis=0)) / np.repeat(np.where(valid, r, 1.0), 2)[:, None]
+    s_min = np.repeat(-a, 2)
+    s_max = np.repeat(pipes.lengths - a, 2)
+    return LimbLines(
+        point=point,
+        direction=np.repeat(v, 2, axis=0),
+        outward=outward,
+        s_min=s_min,
+        s_max=s_max,
+        valid=np.repeat(valid, 2),
+    )
+
+
+def clip_lines_to_view(
+    A_cam: FloatArray,
+    D_cam: FloatArray,
+    s_min: FloatArray,
+    s_max: FloatArray,
+    camera: PinholeCamera,
+    margin_px: float,
+    z_near_m: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Clip lines A + s D (cam frame) to the near plane and the image rectangle (pinhole part).
+
+    Returns the clipped parameter interval (s0, s1); empty where s0 >= s1.
+    """
+    X, Y, Z = A_cam[:, 0], A_cam[:, 1], A_cam[:, 2]
+    dX, dY, dZ = D_cam[:, 0], D_cam[:, 1], D_cam[:, 2]
+    umax = camera.width - 1.0 - margin_px
+    vmax = camera.height - 1.0 - margin_px
+    m = margin_px
+    fx, fy, sk, cx, cy = camera.fx, camera.fy, camera.skew, camera.cx, camera.cy
+    # Constraints a + b s >= 0.
+    a_c = np.stack(
+        [
+            Z - z_near_m,
+            fx * X + sk * Y + (cx - m) * Z,
+            -(fx * X + sk * Y + (cx - umax) * Z),
+            fy * Y + (cy - m) * Z,
+            -(fy * Y + (cy - vmax) * Z),
+        ],
+        axis=1,
+    )
+    b_c = np.stack(
+        [
+            dZ,
+            fx * dX + sk * dY + (cx - m) * dZ,
+            -(fx * dX + sk * dY + (cx - umax) * dZ),
+            fy * dY + (cy - m) * dZ,
+            -(fy * dY + (cy - vmax) * dZ),
+        ],
+        axis=1,
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = -a_c / b_c
+    pos = b_c > 1e-12
+    neg = b_c < -1e-12
+    flat_bad = (~pos) & (~neg) & (a_c < 0.0)
+    lo = np.max(np.where(pos, root, -np.inf), axis=1)
+    hi = np.min(np.where(neg, root, np.inf), axis=1)
+    s0 = np.maximum(s_min, lo)
+    s1 = np.minimum(s_max, hi)
+    bad = np.any(flat_bad, axis=1)
+    s1 = np.where(bad, s0 - 1.0, s1)
+    return s0, s1
+
+
+def ray_cylinder_hits(
+    o_rack: FloatArray, d_rack: FloatArray, pipes: PipeArrays, radius_margin_m: Any = 0.0
+) -> FloatArray:
+    """Distance t (N, M) along unit rays o + t d (N, 3) to the first hit of each finite pipe; inf if none.
+
+    `radius_margin_m` (scalar or (N,)) inflates every radius (used to keep samples away from
+    occluding silhouettes). Both roots are tried so a ray entering through the pipe's open end
+    still counts when it meets the wall inside the length.
+    """
+    c, v, r, L = pipes.starts, pipes.directions, pipes.radii, pipes.lengths
+    w = o_rack[None, :] - c  # (M, 3)
+    wv = np.einsum("mi,mi->m", w, v)  # (M,)
+    dv = d_rack @ v.T  # (N, M)
+    dw = d_rack @ w.T  # (N, M)
+    w_perp2 = np.einsum("mi,mi->m", w, w) - wv * wv  # (M,)
+    A = 1.0 - dv * dv
+    B = dw - dv * wv[None, :]  # half of the usual B
+    rr = r[None, :] + np.asarray(radius_margin_m, dtype=np.float64).reshape(-1, 1)
+    C = w_perp2[None, :] - rr * rr
+    disc = B * B - A * C
+    hit = (disc > 0.0) & (A > 1e-12)
+    sq = np.sqrt(np.where(hit, disc, 0.0))
+    As = np.where(hit, A, 1.0)
+    t_out = np.full(A.shape, np.inf)
+    for sign in (-1.0, 1.0):
+        t = (-B + sign * sq) / As
+        s = wv[None, :] + t * dv
+        ok = hit & (t > 0.0) & (s >= 0.0) & (s <= L[None, :])
+        t_out = np.where(ok & (t < t_out), t, t_out)
+    return t_out
+
+
+def occluded(
+    o_rack: FloatArray,
+    p_rack: FloatArray,
+    own_pipe: IntArray,
+    pipes: PipeArrays,
+    margin_m: Any = 0.0,
+) -> BoolArray:
+    """True where point p (N, 3) on pipe `own_pipe` (N,) is hidden from o by another pipe."""
+    d = p_rack - o_rack[None, :]
+    dist = np.linalg.norm(d, axis=1)
+    d = d / np.maximum(dist, 1e-12)[:, None]
+    t = ray_cylinder_hits(o_rack, d, pipes, margin_m)
+    t[np.arange(p_rack.shape[0]), own_pipe] = np.inf
+    return np.asarray(np.any(t < dist[:, None] * (1.0 - 1e-6), axis=1))
+
+
+@dataclass(frozen=True)
+class LimbSamples:
+    """Measurement points on the visible limbs (N samples).
+
+    `p_rack`/`p_cam` (N, 3) points on the limb (m); `uv` (N, 2) pixels; `normal_px` (N, 2) unit
+    image normal pointing out of the pipe; `J_uv_pcam` (N, 2, 3) projection Jacobian;
+    `pipe` (N,) pipe index; `limb` (N,) limb index (2 * pipe + side); `segments_uv` (L, 2, 2)
+    the clipped limb segments' end pixels (pinhole part) and `segment_limb` (L,) their limb index.
+    """
+
+    p_rack: FloatArray
+    p_cam: FloatArray
+    uv: FloatArray
+    normal_px: FloatArray
+    J_uv_pcam: FloatArray
+    pipe: IntArray
+    limb: IntArray
+    segments_uv: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    segment_limb: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+
+
+def sample_limbs(
+    T_rack_cam: FloatArray,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    samples_per_limb: int,
+    margin_px: float = 4.0,
+    min_length_px: float = 12.0,
+    z_near_m: float = 0.1,
+    occlusion_margin_px: float = 3.0,
+) -> LimbSamples:
+    """Sample every visible limb at `samples_per_limb` image-uniform points; drop occluded samples."""
+    R_rc = T_rack_cam[:3, :3]
+    o = T_rack_cam[:3, 3]
+    lines = limb_lines(o, pipes)
+    R_cr = R_rc.T
+    A_cam = (lines.point - o) @ R_rc  # R_cam_rack (p - o)
+    D_cam = lines.direction @ R_rc
+    s0, s1 = clip_lines_to_view(A_cam, D_cam, lines.s_min, lines.s_max, camera, margin_px, z_near_m)
+    keep = lines.valid & (s1 > s0)
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return _empty_samples()
+    Pa = A_cam[idx] + s0[idx, None] * D_cam[idx]
+    Pb = A_cam[idx] + s1[idx, None] * D_cam[idx]
+    # Image length of each clipped line (pinhole part) to drop tiny ones.
+    ua = Pa[:, :2] / Pa[:, 2:3]
+    ub = Pb[:, :2] / Pb[:, 2:3]
+    len_px = np.hypot((ub[:, 0] - ua[:, 0]) * camera.fx, (ub[:, 1] - ua[:, 1]) * camera.fy)
+    long_enough = len_px >= min_length_px
+    idx, Pa, Pb = idx[long_enough], Pa[long_enough], Pb[long_enough]
+    ua, ub = ua[long_enough], ub[long_enough]
+    if idx.size == 0:
+        return _empty_samples()
+    seg = np.stack([
+        np.stack([ua[:, 0] * camera.fx + ua[:, 1] * camera.skew + camera.cx, ua[:, 1] * camera.fy + camera.cy], 1),
+        np.stack([ub[:, 0] * camera.fx + ub[:, 1] * camera.skew + camera.cx, ub[:, 1] * camera.fy + camera.cy], 1),
+    ], axis=1)
+    K = int(samples_per_limb)
+    t = (np.arange(K) + 0.5) / K  # image-uniform parameters
+    Za, Zb = Pa[:, 2:3], Pb[:, 2:3]
+    lam = t[None, :] * Za / (t[None, :] * Za + (1.0 - t[None, :]) * Zb)  # (L, K)
+    p_cam = (1.0 - lam)[..., None] * Pa[:, None, :] + lam[..., None] * Pb[:, None, :]
+    p_cam = p_cam.reshape(-1, 3)
+    limb = np.repeat(idx, K)
+    pipe = limb // 2
+    p_rack = p_cam @ R_cr + o
+    # Occlusion by other pipes, with a margin of a few pixels at the sample's depth.
+    margin_m = occlusion_margin_px * p_cam[:, 2] / camera.fx
+    vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
+    uv, J = camera.project_with_jacobian(p_cam)
+    vis &= camera.in_image(uv, margin_px)
+    p_cam, p_rack, uv, J, limb, pipe = p_cam[vis], p_rack[vis], uv[vis], J[vis], limb[vis], pipe[vis]
+    # Image tangent (direction of the pipe axis) and outward normal through the Jacobian.
+    t_img = np.einsum("nij,nj->ni", J, lines.direction[limb] @ R_rc)
+    m_img = np.einsum("nij,nj->ni", J, lines.outward[limb] @ R_rc)
+    t_img /= np.maximum(np.linalg.norm(t_img, axis=1, keepdims=True), 1e-12)
+    n_img = np.stack([-t_img[:, 1], t_img[:, 0]], axis=1)
+    flip = np.einsum("ni,ni->n", n_img, m_img) < 0.0
+    n_img[flip] *= -1.0
+    return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
+                       segments_uv=seg, segment_limb=idx)
+
+
+def _empty_samples() -> LimbSamples:
+    z3 = np.zeros((0, 3))
+    zi = np.zeros(0, dtype=np.intp)
+    return LimbSamples(p_rack=z3, p_cam=z3, uv=np.zeros((0, 2)), normal_px=np.zeros((0, 2)),
+                       J_uv_pcam=np.zeros((0, 2, 3)), pipe=zi, limb=zi)

@@ -1,0 +1,100 @@
+"""Image motion fields of the SE(3) generators and of the gap parameters, and the IRLS solve.
+
+Pose perturbation convention (used everywhere in the rack tracker): a right perturbation in
+the camera frame, twist δ = (v, w) (m, rad):  T_rack_cam' = T_rack_cam @ se3.exp(δ).
+A point fixed in the rack frame then moves in the camera frame as
+    p_cam' = exp(-δ) p_cam ≈ p_cam - v + p_cam × w,
+so d p_cam / d δ = [-I, hat(p_cam)] and the image motion field of generator i (the paper's
+ξ_i, eq. 8-9) is J_uv_pcam @ column i. Projected on a measurement's unit normal n it gives
+σ_i = ξ_iᵀ n (eq. 15). A cumulative gap d̄_k moves the points of parallel pipe k+1 along the
+rack +x axis (eq. 23-26): d p_cam / d d̄_k = R_cam_rack e_x.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.errors import InputError
+
+
+def pose_jacobian(J_uv_pcam: FloatArray, p_cam: FloatArray) -> FloatArray:
+    """Image motion fields (N, 2, 6) of the six generators (right perturbation, cam frame)."""
+    n = p_cam.shape[0]
+    D = np.zeros((n, 3, 6))
+    D[:, 0, 0] = D[:, 1, 1] = D[:, 2, 2] = -1.0
+    x, y, z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    # hat(p) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]
+    D[:, 0, 4], D[:, 0, 5] = -z, y
+    D[:, 1, 3], D[:, 1, 5] = z, -x
+    D[:, 2, 3], D[:, 2, 4] = -y, x
+    return np.asarray(np.einsum("nij,njk->nik", J_uv_pcam, D))
+
+
+def gap_jacobian(J_uv_pcam: FloatArray, R_cam_rack: FloatArray) -> FloatArray:
+    """Image motion (N, 2) of a point when its pipe shifts along rack +x (per metre)."""
+    return np.asarray(np.einsum("nij,j->ni", J_uv_pcam, R_cam_rack[:, 0]))
+
+
+def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None = None) -> FloatArray:
+    """IRLS weights of residuals r (px).
+
+    kind "paper": s(e) = 1 / (ν + |e|) (eq. 29); "tukey": Tukey biweight with c = 4.685 × the
+    MAD scale (floored at ν / 2); "l2": ones. Residuals beyond `gate_px` get weight 0.
+    """
+    a = np.abs(r)
+    if kind == "paper":
+        w = 1.0 / (nu_px + a)
+    elif kind == "tukey":
+        scale = max(1.4826 * float(np.median(a)) if a.size else 0.0, 0.5 * nu_px)
+        c = 4.685 * scale
+        w = np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
+    elif kind == "l2":
+        w = np.ones_like(a)
+    else:
+        raise InputError(f"robust: expected 'paper', 'tukey' or 'l2', got {kind!r}")
+    if gate_px is not None:
+        w = np.where(a <= gate_px, w, 0.0)
+    return np.asarray(w, dtype=np.float64)
+
+
+def solve_normal_equations(
+    A: FloatArray,
+    r: FloatArray,
+    w: FloatArray,
+    prior_information: FloatArray,
+    anchor_information: FloatArray | None = None,
+    anchor: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Weighted, damped least squares (eq. 16-18 and 27-28 with damping and a prior):
+
+    minimise Σ w (r - A x)² + xᵀ diag(prior) x + (x - anchor)ᵀ diag(anchor_information) (x - anchor).
+    Returns (x, H_data = Aᵀ W A, H = H_data + diag(prior) + diag(anchor_information)).
+    """
+    Aw = A * w[:, None]
+    H_data = A.T @ Aw
+    g = Aw.T @ r
+    H = H_data + np.diag(prior_information)
+    if anchor_information is not None and anchor is not None:
+        H = H + np.diag(anchor_information)
+        g = g + anchor_information * anchor
+    try:
+        x = np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        x = np.linalg.lstsq(H, g, rcond=None)[0]
+    return np.asarray(x), np.asarray(H_data), np.asarray(H)
+
+
+def information_condition(H: FloatArray, basis: Any = None) -> float:
+    """Condition number of the column-normalised information matrix (optionally in a subspace)."""
+    M = H if basis is None else basis.T @ H @ basis
+    d = np.sqrt(np.maximum(np.diag(M), 0.0))
+    if np.any(d <= 1e-12):
+        return float("inf")
+    C = M / np.outer(d, d)
+    ev = np.linalg.eigvalsh(C)
+    if ev[0] <= 0.0:
+        return float("inf")
+    return float(ev[-1] / ev[0])

@@ -1,0 +1,153 @@
+"""Persistent map of texture points on the pipes' surfaces (3-D, rack frame).
+
+Points are found with Shi-Tomasi corners inside the pipes' image regions, back-projected by
+intersecting the pixel's ray with the pipe cylinders (nearest hit), and stored relative to
+their pipe's axis start so they follow the pipe when the gap estimates change. Each frame they
+are tracked from the previous image with pyramidal Lucas-Kanade, seeded with the projection at
+the predicted pose, so only a small window around each prediction is searched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.limbs import IntArray, ray_cylinder_hits
+from companion.vision.rack.model import PipeArrays
+
+
+@dataclass
+class TextureMap:
+    """Mutable map owned by one `RackTracker` (K points)."""
+
+    pipe: IntArray
+    offset_rack: FloatArray  # (K, 3) point minus its pipe's axis start, rack frame (m)
+    uv_last: FloatArray  # (K, 2) last measured pixel
+    n_obs: FloatArray  # (K,) number of observations averaged into offset_rack
+
+    @classmethod
+    def empty(cls) -> TextureMap:
+        return cls(pipe=np.zeros(0, dtype=np.intp), offset_rack=np.zeros((0, 3)), uv_last=np.zeros((0, 2)),
+                   n_obs=np.zeros(0))
+
+    def __len__(self) -> int:
+        return int(self.pipe.size)
+
+    def points_rack(self, pipes: PipeArrays) -> FloatArray:
+        return np.asarray(pipes.starts[self.pipe] + self.offset_rack)
+
+    def keep(self, mask: Any) -> None:
+        self.pipe = self.pipe[mask]
+        self.offset_rack = self.offset_rack[mask]
+        self.uv_last = self.uv_last[mask]
+        self.n_obs = self.n_obs[mask]
+
+    def add(self, pipe: IntArray, offset_rack: FloatArray, uv: FloatArray) -> None:
+        self.pipe = np.concatenate([self.pipe, pipe])
+        self.offset_rack = np.vstack([self.offset_rack, offset_rack])
+        self.uv_last = np.vstack([self.uv_last, uv])
+        self.n_obs = np.concatenate([self.n_obs, np.ones(pipe.size)])
+
+    def refine(
+        self, T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays, uv: FloatArray, max_obs: float
+    ) -> None:
+        """Average each point with the back-projection of its pixel `uv` (K, 2) onto its own pipe.
+
+        A running mean over up to `max_obs` observations: the map then carries the average of
+        the poses it was seen from instead of the error of the single pose it was created at.
+        """
+        if self.pipe.size == 0:
+            return
+        d = camera.unproject(uv) @ T_rack_cam[:3, :3].T
+        t = ray_cylinder_hits(T_rack_cam[:3, 3], d, pipes)[np.arange(self.pipe.size), self.pipe]
+        ok = np.isfinite(t)
+        new = T_rack_cam[:3, 3] + t[ok, None] * d[ok] - pipes.starts[self.pipe[ok]]
+        n = np.minimum(self.n_obs[ok] + 1.0, max_obs)
+        self.offset_rack[ok] += (new - self.offset_rack[ok]) / n[:, None]
+        self.n_obs[ok] = n
+
+
+def track_points(
+    prev: np.ndarray[Any, np.dtype[np.uint8]],
+    cur: np.ndarray[Any, np.dtype[np.uint8]],
+    uv_prev: FloatArray,
+    uv_guess: FloatArray,
+    window_px: int,
+    levels: int,
+) -> tuple[FloatArray, np.ndarray[Any, np.dtype[np.bool_]]]:
+    """Lucas-Kanade from `prev` to `cur`, starting at `uv_guess`; returns (uv (K, 2), ok (K,))."""
+    if uv_prev.shape[0] == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    p0 = uv_prev.astype(np.float32).reshape(-1, 1, 2)
+    p1 = uv_guess.astype(np.float32).reshape(-1, 1, 2).copy()
+    p1_out, status, _err = cv2.calcOpticalFlowPyrLK(
+        prev,
+        cur,
+        p0,
+        p1,
+        winSize=(window_px, window_px),
+        maxLevel=levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.02),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    uv = np.asarray(p1_out, dtype=np.float64).reshape(-1, 2)
+    ok = status.ravel().astype(bool) & np.all(np.isfinite(uv), axis=1)
+    return uv, ok
+
+
+def detect_points(
+    gray: np.ndarray[Any, np.dtype[np.uint8]],
+    T_rack_cam: FloatArray,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    pipe_polygons: list[FloatArray],
+    existing_uv: FloatArray,
+    max_new: int,
+    min_distance_px: float,
+    min_incidence_cos: float,
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """New texture points: (pipe (J,), offset from the pipe's axis start (J, 3), uv (J, 2))."""
+    empty = (np.zeros(0, dtype=np.intp), np.zeros((0, 3)), np.zeros((0, 2)))
+    if max_new <= 0 or not pipe_polygons:
+        return empty
+    mask = np.zeros(gray.shape[:2], dtype=np.uint8)
+    for poly in pipe_polygons:
+        cv2.fillConvexPoly(mask, np.rint(poly).astype(np.int32), 255)
+    for q in existing_uv:
+        cv2.circle(mask, (round(q[0]), round(q[1])), int(min_distance_px), 0, -1)
+    x, y, w, h = cv2.boundingRect(mask)
+    if w < 8 or h < 8:
+        return empty
+    corners = cv2.goodFeaturesToTrack(
+        gray[y : y + h, x : x + w],
+        maxCorners=int(2 * max_new),
+        qualityLevel=0.02,
+        minDistance=float(min_distance_px),
+        mask=mask[y : y + h, x : x + w],
+        blockSize=7,
+    )
+    if corners is None:
+        return empty
+    uv = corners.reshape(-1, 2).astype(np.float64) + np.array([x, y], dtype=np.float64)
+    rays_cam = camera.unproject(uv)
+    R = T_rack_cam[:3, :3]
+    o = T_rack_cam[:3, 3]
+    d = rays_cam @ R.T
+    t = ray_cylinder_hits(o, d, pipes)
+    best = np.argmin(t, axis=1)
+    tb = t[np.arange(t.shape[0]), best]
+    hit = np.isfinite(tb)
+    p = o + tb[:, None] * d
+    rel = p - pipes.starts[best]
+    ax = np.einsum("ni,ni->n", rel, pipes.directions[best])
+    radial = rel - ax[:, None] * pipes.directions[best]
+    nrm = radial / pipes.radii[best][:, None]
+    cosang = np.abs(np.einsum("ni,ni->n", nrm, d))
+    good = hit & (cosang >= min_incidence_cos)
+    idx = np.flatnonzero(good)[:max_new]
+    return best[idx].astype(np.intp), rel[idx], uv[idx]

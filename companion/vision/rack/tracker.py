@@ -1,0 +1,571 @@
+"""Model-based SE(3) tracker of a camera over a pipe-rack (Lippiello & Cacace, section III).
+
+Per frame: predict the pose (constant velocity), track the texture points (Lucas-Kanade seeded
+by their predicted projection), then iterate: render the visible limbs from the current
+estimate (eq. 10-14), search the image edge along each sample's normal, stack the normal
+components of the generators' motion fields (eq. 8-9, 15) for the edges and the full image
+motion for the texture points, add the gap parameters' fields (eq. 23-26), solve the IRLS
+normal equations (eq. 16-18, 27-29) with a weak prior that damps unobservable directions, and
+update the pose through the exponential map (not its linear approximation). Health checks
+decide `ok`; the covariance comes from the final normal matrix and the residual scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray, check_transform
+from companion.errors import InputError, TrackingError
+from companion.geometry import se3
+from companion.vision.rack.edges import search_edges
+from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
+from companion.vision.rack.model import PipeArrays, RackModel
+from companion.vision.rack.motion import (
+    gap_jacobian,
+    information_condition,
+    pose_jacobian,
+    robust_weights,
+    solve_normal_equations,
+)
+from companion.vision.rack.texture import TextureMap, detect_points, track_points
+
+_ROBUST_KINDS = ("paper", "tukey", "l2")
+
+
+@dataclass(frozen=True)
+class RackTrackerConfig:
+    """Tuning of `RackTracker` (pixels, metres, radians).
+
+    Edges: `samples_per_limb` image-uniform samples per visible limb; `search_range_px` the
+    half-length of the normal search while tracking; on the first frame after `reset` it starts
+    at `init_search_range_m` at the limbs' median depth (at most `init_search_range_px`) and
+    shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
+    image blurred in proportion); `edge_threshold`
+    the minimum |I(k+1) - I(k-1)| (grey levels); `blur_sigma_px` an optional Gaussian pre-blur;
+    `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
+    image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
+    Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
+    paper's ν; `gate_px` residuals beyond this are dropped after the first iteration;
+    `max_iterations` / `min_iterations` per frame, stopping when the update is below
+    `stop_translation_m` / `stop_rotation_rad` or moves the rendered edges by less than
+    `stop_px` (median); `prior_*` the standard deviations of the per-iteration damping (a weak
+    prior on the motion that holds unobservable directions); `reset_prior_*` the standard
+    deviations of the pose given to `reset` (a prior on the first frame; raise them, e.g. to
+    0.1 m / 0.05 rad, when the reset pose is rough) and `motion_prior_*`
+    those of the constant-velocity prediction (a prior on every later frame): both only matter
+    in weakly observed directions; `estimate_gaps` solves the cumulative gaps too;
+    `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
+    measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
+    next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
+    `velocity_prediction` enables the constant-velocity prediction.
+    Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
+    `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
+    `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
+    a point's 3-D position is averaged over (1 = keep the position from the first sighting),
+    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points).
+    Health: `min_edge_points` agreeing samples, `min_inlier_fraction`, `max_residual_px`
+    robust residual std, `max_condition` of the normalised information matrix, `inlier_px`
+    agreement threshold; `covariance_inflation` multiplies the covariance (edge samples along
+    one limb are correlated).
+    """
+
+    samples_per_limb: int = 32
+    search_range_px: int = 12
+    init_search_range_px: int = 128
+    init_search_range_m: float = 0.25
+    init_iterations: int = 16
+    init_shrink: float = 0.8
+    edge_threshold: float = 8.0
+    blur_sigma_px: float = 0.0
+    polarity_rate: float = 0.1
+    margin_px: float = 6.0
+    occlusion_margin_px: float = 3.0
+    robust: str = "paper"
+    nu_px: float = 1.0
+    gate_px: float = 4.0
+    max_iterations: int = 3
+    min_iterations: int = 2
+    stop_translation_m: float = 5e-4
+    stop_rotation_rad: float = 3e-4
+    stop_px: float = 0.15
+    prior_translation_m: float = 0.05
+    prior_rotation_rad: float = 0.02
+    prior_gap_m: float = 0.05
+    reset_prior_translation_m: float = 0.01
+    reset_prior_rotation_rad: float = 0.002
+    motion_prior_translation_m: float = 0.01
+    motion_prior_rotation_rad: float = 0.005
+    estimate_gaps: bool = False
+    estimate_edge_bias: bool = False
+    edge_bias_rate_px: float = 0.02
+    velocity_prediction: bool = True
+    max_texture_points: int = 50
+    texture_weight: float = 2.0
+    detect_every: int = 4
+    lk_window_px: int = 11
+    lk_levels: int = 2
+    texture_max_residual_px: float = 2.5
+    texture_refine_obs: int = 20
+    texture_min_distance_px: float = 12.0
+    texture_min_incidence_cos: float = 0.4
+    min_edge_points: int = 20
+    min_inlier_fraction: float = 0.35
+    max_residual_px: float = 2.0
+    max_condition: float = 1e7
+    inlier_px: float = 2.0
+    covariance_inflation: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.robust not in _ROBUST_KINDS:
+            raise InputError(f"robust: expected one of {_ROBUST_KINDS}, got {self.robust!r}")
+        for name in ("samples_per_limb", "search_range_px", "init_search_range_px", "max_iterations",
+                     "init_iterations", "detect_every", "lk_window_px"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if self.max_texture_points < 0:
+            raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
+        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class RackEstimate:
+    """Result of `RackTracker.track` for one frame.
+
+    `T_rack_cam` (4x4): camera (OpenCV optical frame) pose in the rack frame; the best pose even
+    when `ok` is false (then it is the motion prediction). `covariance` (6x6): covariance of the
+    pose error as a RIGHT perturbation in the camera frame, twist order (v, w) (m, rad):
+    T_true = T_rack_cam @ se3.exp(delta), delta ~ N(0, covariance). `gaps` (n-1,): cumulative
+    gaps d̄_1..d̄_{n-1} (m) in use (estimated when `estimate_gaps`), `gaps_std_m` their standard
+    deviations (0 when not estimated). `num_edge_points`: edge samples that agree with the final
+    pose (|residual| <= inlier_px); `num_edge_samples`: samples searched; `num_texture_points`:
+    texture points used; `residual_px`: robust standard deviation of the final edge residuals;
+    `iterations`: solver iterations; `status`: "" when ok, else the reason; `condition`: the
+    condition number of the normalised information matrix; `edge_bias_px`: the estimated edge
+    offsets of the two limb sides (px, along the outward normal).
+    """
+
+    stamp_s: float
+    ok: bool
+    T_rack_cam: FloatArray
+    covariance: FloatArray
+    gaps: FloatArray
+    gaps_std_m: FloatArray
+    num_edge_points: int
+    num_edge_samples: int
+    num_texture_points: int
+    residual_px: float
+    iterations: int
+    status: str = ""
+    condition: float = 0.0
+    edge_bias_px: FloatArray = field(default_factory=lambda: np.zeros(2))
+
+
+def _readonly(a: FloatArray) -> FloatArray:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.flags.writeable = False
+    return a
+
+
+class RackTracker:
+    """Stateful tracker; call `reset(T_rack_cam)` then `track(image, stamp_s)` for each frame."""
+
+    def __init__(self, model: RackModel, camera: PinholeCamera, config: RackTrackerConfig | None = None) -> None:
+        if not isinstance(model, RackModel):
+            raise InputError(f"model: expected RackModel, got {type(model).__name__}")
+        if not isinstance(camera, PinholeCamera):
+            raise InputError(f"camera: expected PinholeCamera, got {type(camera).__name__}")
+        self.model = model
+        self.camera = camera
+        self.config = config or RackTrackerConfig()
+        n_limbs = 2 * model.num_pipes
+        self._n_gaps = model.num_parallel - 1
+        self._T: FloatArray | None = None
+        self._gaps = model.cumulative_gaps.copy()
+        self._edge_bias = np.zeros(2)
+        self._polarity = np.zeros(n_limbs)
+        self._polarity_known = np.zeros(n_limbs, dtype=bool)
+        self._texture = TextureMap.empty()
+        self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
+        self._velocity = np.zeros(6)
+        self._last_stamp: float | None = None
+        self._frames = 0
+        self._initialized = False
+        self._since_detect = 0
+
+    # ------------------------------------------------------------------ public API
+    def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
+        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity."""
+        self._T = check_transform(T_rack_cam, "T_rack_cam").copy()
+        if cumulative_gaps is not None:
+            g = np.asarray(cumulative_gaps, dtype=np.float64).ravel()
+            if g.size != self._n_gaps:
+                raise InputError(f"cumulative_gaps: expected {self._n_gaps} values, got {g.size}")
+            self._gaps = g.copy()
+        else:
+            self._gaps = self.model.cumulative_gaps.copy()
+        self._edge_bias = np.zeros(2)
+        self._polarity[:] = 0.0
+        self._polarity_known[:] = False
+        self._texture = TextureMap.empty()
+        self._prev_gray = None
+        self._velocity = np.zeros(6)
+        self._last_stamp = None
+        self._frames = 0
+        self._initialized = False
+        self._since_detect = 0
+
+    @property
+    def T_rack_cam(self) -> FloatArray:
+        if self._T is None:
+            raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
+        return self._T.copy()
+
+    def track(self, image: Any, stamp_s: float) -> RackEstimate:
+        """Track one frame: `image` (H, W) uint8 gray or (H, W, 3) uint8 BGR, `stamp_s` capture time (s)."""
+        if self._T is None:
+            raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
+        gray = self._as_gray(image)
+        cfg = self.config
+        cam = self.camera
+        img_raw = gray.astype(np.float32)
+        if cfg.blur_sigma_px > 0:
+            k = 2 * int(np.ceil(2.5 * cfg.blur_sigma_px)) + 1
+            img_f = cv2.GaussianBlur(gray, (k, k), cfg.blur_sigma_px).astype(np.float32)
+        else:
+            img_f = img_raw
+        first = not self._initialized  # wide, coarse-to-fine search until a frame is accepted
+        # ---- prediction
+        T = self._T.copy()
+        if cfg.velocity_prediction and self._last_stamp is not None:
+            dt = float(stamp_s) - self._last_stamp
+            if 0.0 < dt <= 0.5:
+                T = T @ se3.exp(self._velocity * dt)
+        T_pred = T.copy()
+        gaps = self._gaps.copy()
+        pipes = self.model.pipe_arrays(gaps)
+        # ---- texture points: LK from the previous image, seeded by the predicted projection
+        tex_uv = np.zeros((0, 2))
+        tex_ok = np.zeros(0, dtype=bool)
+        if len(self._texture) and self._prev_gray is not None and cfg.max_texture_points > 0:
+            p_rack = self._texture.points_rack(pipes)
+            p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
+            guess = cam.project(p_cam)
+            vis = np.all(np.isfinite(guess), axis=1) & cam.in_image(guess, 8.0)
+            vis &= ~occluded(T[:3, 3], p_rack, self._texture.pipe, pipes, 0.0)
+            guess = np.where(vis[:, None], guess, self._texture.uv_last)
+            tex_uv, tex_ok = track_points(self._prev_gray, gray, self._texture.uv_last, guess,
+                                          cfg.lk_window_px, cfg.lk_levels)
+            tex_ok &= vis & cam.in_image(tex_uv, 4.0)
+            self._texture.keep(tex_ok)
+            tex_uv = tex_uv[tex_ok]
+        # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
+        if first:
+            n_p = self.model.num_parallel
+            best: dict[str, Any] | None = None
+            for hyp in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):
+                pol_h = np.zeros(self._polarity.size)
+                pol_h[0 : 2 * n_p : 2] = hyp[0]
+                pol_h[1 : 2 * n_p : 2] = hyp[1]
+                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h)
+                if best is None or res["n_agree"] > best["n_agree"]:
+                    best = res
+            assert best is not None
+            last = best
+        else:
+            pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
+            last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t)
+        T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
+        # ---- health
+        x = last["x"]
+        r_post = last["r_post"]
+        w = last["w"]
+        n_samples = int(last["samples"].uv.shape[0])
+        agree = last["agree"]
+        n_agree = int(last["n_agree"])
+        residual_px = float(last["residual_px"])
+        H_data = last["H_data"]
+        n_tex = int(tex_uv.shape[0])
+        if n_tex >= 3:
+            cond = information_condition(H_data[:6, :6])
+        else:
+            # Along-pipe translation is expected to be weak without texture: check the rest.
+            e_y = np.zeros(6)
+            e_y[:3] = T[:3, :3].T[:, 1]
+            Q = np.linalg.svd(np.eye(6) - np.outer(e_y, e_y))[0][:, :5]
+            cond = information_condition(H_data[:6, :6], Q)
+        status = ""
+        if n_samples == 0:
+            status = "no visible limb"
+        elif n_agree < cfg.min_edge_points:
+            status = f"too few agreeing edge samples ({n_agree})"
+        elif n_agree < cfg.min_inlier_fraction * n_samples:
+            status = f"too few agreeing edge samples ({n_agree}/{n_samples})"
+        elif residual_px > cfg.max_residual_px:
+            status = f"edge residual too large ({residual_px:.2f} px)"
+        elif not cond < cfg.max_condition:
+            status = f"ill-conditioned ({cond:.3g})"
+        ok = status == ""
+        # ---- covariance from the final normal matrix and residual scale
+        wpos = w > 0
+        dof = max(int(wpos.sum()) - x.size, 1)
+        scale2 = float(np.sum(w * r_post**2) / dof)
+        try:
+            cov_full = np.linalg.inv(last["H"]) * scale2 * cfg.covariance_inflation
+        except np.linalg.LinAlgError:
+            cov_full = np.eye(x.size) * 1e6
+        cov = 0.5 * (cov_full[:6, :6] + cov_full[:6, :6].T)
+        n_gap = self._n_gaps if cfg.estimate_gaps else 0
+        gap_std = np.sqrt(np.maximum(np.diag(cov_full)[6 : 6 + n_gap], 0.0)) if n_gap else np.zeros(self._n_gaps)
+        # ---- state update
+        dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
+        if ok:
+            if dt_s is not None and 0.0 < dt_s <= 0.5:
+                self._velocity = se3.log(se3.inverse(self._T) @ T) / dt_s
+            else:
+                self._velocity = np.zeros(6)
+            self._T = T
+            self._gaps = gaps
+            self._edge_bias = last["bias"]
+            self._initialized = True
+            self._update_polarity(last["samples"], last["meas"].sign, agree)
+            self._update_texture(gray, T, pipes, tex_uv, last["samples"])
+        else:
+            self._T = T_pred
+            self._velocity = np.zeros(6)
+            if len(self._texture):
+                self._texture.uv_last = tex_uv
+            cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)
+        self._prev_gray = gray.copy()
+        self._last_stamp = float(stamp_s)
+        self._frames += 1
+        return RackEstimate(
+            stamp_s=float(stamp_s),
+            ok=ok,
+            T_rack_cam=_readonly(self._T),
+            covariance=_readonly(cov),
+            gaps=_readonly(self._gaps),
+            gaps_std_m=_readonly(gap_std),
+            num_edge_points=n_agree,
+            num_edge_samples=n_samples,
+            num_texture_points=n_tex,
+            residual_px=residual_px,
+            iterations=it_done,
+            status=status,
+            condition=float(cond),
+            edge_bias_px=_readonly(self._edge_bias),
+        )
+
+    # ------------------------------------------------------------------ internals
+    def _solve(
+        self,
+        T: FloatArray,
+        gaps: FloatArray,
+        img_raw: np.ndarray[Any, np.dtype[np.float32]],
+        img_f: np.ndarray[Any, np.dtype[np.float32]],
+        tex_uv: FloatArray,
+        first: bool,
+        polarity: FloatArray,
+    ) -> dict[str, Any]:
+        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state."""
+        cfg = self.config
+        cam = self.camera
+        n_iter = cfg.init_iterations if first else cfg.max_iterations
+        n_gap = self._n_gaps if cfg.estimate_gaps else 0
+        i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
+        n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
+        prior = np.empty(n_par)
+        prior[:3] = 1.0 / cfg.prior_translation_m**2
+        prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
+        prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
+        prior[i_bias:] = 1.0
+        pipes = self.model.pipe_arrays(gaps)
+        anchor_info = np.zeros(n_par)
+        if first:
+            anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
+            anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
+            anchor_info[i_bias:] = 1.0 / 0.3**2
+        else:
+            anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
+            anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
+            anchor_info[i_bias:] = 1.0 / cfg.edge_bias_rate_px**2
+        bias = self._edge_bias.copy()
+        moved = np.zeros(n_par)  # sum of this frame's increments (first order: the offset from the anchor)
+        last: dict[str, Any] = {}
+        it_done = 0
+        init_px = float(cfg.init_search_range_px)
+        if first:
+            # The first search covers init_search_range_m at the pipes' depth (capped in pixels).
+            s0 = sample_limbs(T, cam, pipes, 4, cfg.margin_px, 12.0, 0.1, 0.0)
+            if s0.p_cam.shape[0]:
+                depth = float(np.median(s0.p_cam[:, 2]))
+                init_px = min(cam.fx * cfg.init_search_range_m / depth, float(cfg.init_search_range_px))
+        for it in range(n_iter):
+            it_done = it + 1
+            if first:
+                rng_px = max(cfg.search_range_px, round(init_px * cfg.init_shrink**it))
+            else:
+                rng_px = cfg.search_range_px
+            samples = sample_limbs(T, cam, pipes, cfg.samples_per_limb, cfg.margin_px, 12.0, 0.1,
+                                   cfg.occlusion_margin_px)
+            pol = polarity[samples.limb]
+            img_it = img_f
+            thr = cfg.edge_threshold
+            if first and rng_px > 2 * cfg.search_range_px:
+                sigma = max(cfg.blur_sigma_px, rng_px / 16.0)
+                img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
+                thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
+            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr)
+            A_e, r_e, f = self._edge_rows(samples, meas.offset_px, meas.found, T, gaps, n_par)
+            if cfg.estimate_edge_bias:
+                side = samples.limb[f] % 2
+                A_e[np.arange(side.size), i_bias + side] = 1.0
+                r_e = r_e - bias[side]
+            A_t, r_t = self._texture_rows(T, pipes, tex_uv, n_par)
+            A = np.vstack([A_e, A_t])
+            r = np.concatenate([r_e, r_t])
+            gate = None
+            if it > 0:
+                gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
+            w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
+            w[r_e.size :] *= cfg.texture_weight
+            x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
+            moved += x
+            T = T @ se3.exp(x[:6])
+            if n_gap:
+                gaps = gaps + x[6:i_bias]
+                pipes = self.model.pipe_arrays(gaps)
+            if cfg.estimate_edge_bias:
+                bias = bias + x[i_bias:]
+            last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
+                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size}
+            small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
+                         and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
+            # Also stop when the update moves the rendered edges by less than stop_px (median).
+            small = small or bool(r_e.size > 0 and float(np.median(np.abs(A_e @ x))) < cfg.stop_px)
+            small = small and it + 1 >= cfg.min_iterations
+            if small and (not first or rng_px <= cfg.search_range_px):
+                break
+        r_post = last["r"] - last["A"] @ last["x"]
+        n_edge = int(last["n_edge"])
+        agree = np.zeros(last["samples"].uv.shape[0], dtype=bool)
+        agree[np.flatnonzero(last["found"])] = np.abs(r_post[:n_edge]) <= cfg.inlier_px
+        last.update(
+            T=T, gaps=gaps, pipes=pipes, bias=bias, iterations=it_done, r_post=r_post, agree=agree,
+            n_agree=int(agree.sum()),
+            residual_px=float(1.4826 * np.median(np.abs(r_post[:n_edge]))) if n_edge else float("inf"),
+        )
+        return last
+
+    def _as_gray(self, image: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
+        img = np.asarray(image)
+        if img.dtype != np.uint8:
+            raise InputError(f"image: expected uint8, got {img.dtype}")
+        if img.ndim == 3 and img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.ndim == 3 and img.shape[2] == 1:
+            img = img[:, :, 0]
+        if img.ndim != 2:
+            raise InputError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+        if img.shape != (self.camera.height, self.camera.width):
+            raise InputError(f"image: size {img.shape[1]}x{img.shape[0]} does not match the camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        return np.ascontiguousarray(img)
+
+    def _edge_rows(
+        self, samples: LimbSamples, offset: FloatArray, found: Any, T: FloatArray, gaps: FloatArray, n_par: int
+    ) -> tuple[FloatArray, FloatArray, Any]:
+        f = np.asarray(found, dtype=bool)
+        J6 = pose_jacobian(samples.J_uv_pcam[f], samples.p_cam[f])  # (n, 2, 6)
+        nrm = samples.normal_px[f]
+        A = np.zeros((int(f.sum()), n_par))
+        A[:, :6] = np.einsum("nij,ni->nj", J6, nrm)  # σ = ξᵀ n (eq. 15)
+        if self.config.estimate_gaps and self._n_gaps:
+            gi = self.model.pipe_arrays(gaps).gap_index[samples.pipe[f]]
+            has = gi >= 0
+            Jg = gap_jacobian(samples.J_uv_pcam[f][has], T[:3, :3].T)
+            A[np.flatnonzero(has), 6 + gi[has]] = np.einsum("ni,ni->n", Jg, nrm[has])
+        return A, offset[f], f
+
+    def _texture_rows(
+        self, T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray, n_par: int
+    ) -> tuple[FloatArray, FloatArray]:
+        k = tex_uv.shape[0]
+        if k == 0:
+            return np.zeros((0, n_par)), np.zeros(0)
+        p_rack = self._texture.points_rack(pipes)
+        p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
+        uv, J = self.camera.project_with_jacobian(p_cam)
+        A = np.zeros((2 * k, n_par))
+        A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
+        if self.config.estimate_gaps and self._n_gaps:
+            gi = pipes.gap_index[self._texture.pipe]
+            Jg = gap_jacobian(J, T[:3, :3].T)  # (k, 2)
+            for c in range(2):
+                rows = 2 * np.arange(k) + c
+                has = gi >= 0
+                A[rows[has], 6 + gi[has]] = Jg[has, c]
+        r = (tex_uv - uv).reshape(-1)
+        return A, r
+
+    def _update_polarity(self, samples: LimbSamples, sign: FloatArray, good: Any) -> None:
+        g = np.asarray(good, dtype=bool)
+        if not np.any(g):
+            return
+        limbs = samples.limb[g]
+        n_l = self._polarity.size
+        s = np.bincount(limbs, weights=sign[g], minlength=n_l)
+        c = np.bincount(limbs, minlength=n_l)
+        seen = c >= 3
+        mean = np.where(seen, s / np.maximum(c, 1), 0.0)
+        new = seen & ~self._polarity_known
+        upd = seen & self._polarity_known
+        rate = self.config.polarity_rate
+        self._polarity[new] = mean[new]
+        self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
+        self._polarity_known |= seen
+
+    def _update_texture(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray,
+        samples: LimbSamples,
+    ) -> None:
+        cfg = self.config
+        if cfg.max_texture_points == 0:
+            return
+        tm = self._texture
+        if len(tm):
+            p_cam = (tm.points_rack(pipes) - T[:3, 3]) @ T[:3, :3]
+            uv = self.camera.project(p_cam)
+            res = np.linalg.norm(tex_uv - uv, axis=1)
+            keep = res <= cfg.texture_max_residual_px
+            tm.uv_last = tex_uv
+            tm.keep(keep)
+            if cfg.texture_refine_obs > 1:
+                tm.refine(T, self.camera, pipes, tm.uv_last, float(cfg.texture_refine_obs))
+        self._since_detect += 1
+        need = cfg.max_texture_points - len(tm)
+        if need <= 0 or (len(tm) and need < max(3, cfg.max_texture_points // 5)):
+            return
+        if self._since_detect < cfg.detect_every and len(tm) >= 0.6 * cfg.max_texture_points:
+            return
+        self._since_detect = 0
+        polys = []
+        seg_l = samples.segment_limb
+        for pipe in np.unique(seg_l // 2):
+            a = np.flatnonzero(seg_l == 2 * pipe)
+            b = np.flatnonzero(seg_l == 2 * pipe + 1)
+            if a.size and b.size:
+                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
+                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        new_pipe, new_off, new_uv = detect_points(
+            gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
+            cfg.texture_min_incidence_cos,
+        )
+        if new_pipe.size:
+            tm.add(new_pipe, new_off, new_uv)

@@ -1,0 +1,49 @@
+"""Edge search: sub-pixel accuracy, polarity, bounded range."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from companion.vision.rack.edges import search_edges
+
+
+def _step_image(edge_x: float, left: float, right: float, width: int = 200, height: int = 60) -> np.ndarray:
+    """Anti-aliased vertical step at x = edge_x (pixel-centre convention), blurred a little."""
+    x = np.arange(width, dtype=np.float64)
+    frac = np.clip(x + 0.5 - edge_x, 0.0, 1.0)  # coverage of the right intensity in each pixel
+    row = left + (right - left) * frac
+    img = np.tile(row, (height, 1)).astype(np.float32)
+    return np.asarray(cv2.GaussianBlur(img, (0, 0), 1.0))
+
+
+def test_subpixel_edge_position() -> None:
+    for edge_x in (100.0, 100.3, 100.5, 100.8):
+        img = _step_image(edge_x, 200.0, 60.0)
+        uv = np.array([[96.0, 30.0], [104.5, 20.0]])
+        n = np.array([[1.0, 0.0], [1.0, 0.0]])
+        m = search_edges(img, uv, n, np.array([-1.0, 0.0]), 10, 5.0)
+        assert m.found.all()
+        np.testing.assert_allclose(uv[:, 0] + m.offset_px, edge_x, atol=0.08)
+        np.testing.assert_array_equal(m.sign, [-1.0, -1.0])
+
+
+def test_polarity_rejects_the_opposite_edge() -> None:
+    # Bright band between two edges: rising at x = 80, falling at x = 100.
+    img = np.minimum(_step_image(80.0, 50.0, 200.0), _step_image(100.0, 200.0, 50.0))
+    uv = np.array([[92.0, 30.0]])
+    n = np.array([[1.0, 0.0]])
+    rising = search_edges(img, uv, n, np.array([1.0]), 15, 5.0)
+    falling = search_edges(img, uv, n, np.array([-1.0]), 15, 5.0)
+    assert rising.found[0] and falling.found[0]
+    assert abs(92.0 + rising.offset_px[0] - 80.0) < 0.15
+    assert abs(92.0 + falling.offset_px[0] - 100.0) < 0.15
+
+
+def test_bounded_range_and_flat_image() -> None:
+    img = _step_image(150.0, 200.0, 60.0)
+    m = search_edges(img, np.array([[100.0, 30.0]]), np.array([[1.0, 0.0]]), np.array([0.0]), 12, 5.0)
+    assert not m.found[0]  # the only edge is 50 px away
+    flat = np.full((60, 200), 90.0, dtype=np.float32)
+    m = search_edges(flat, np.array([[100.0, 30.0]]), np.array([[0.0, 1.0]]), np.array([0.0]), 12, 5.0)
+    assert not m.found[0]

@@ -1,0 +1,110 @@
+"""Motion fields of the generators and of the gaps against numeric differences of the projection."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.geometry import se3, so3
+from companion.vision.rack import RackModel
+from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.motion import gap_jacobian, pose_jacobian, robust_weights, solve_normal_equations
+from tests.numdiff import central_jacobian
+
+CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    R = so3.exp(rng.normal(0, 0.1, 3)) @ R_DOWN
+    return se3.make(R, [0.6 + rng.normal(0, 0.1), 4.0 + rng.normal(0, 0.3), 2.4 + rng.normal(0, 0.2)])
+
+
+def test_point_motion_fields_match_central_differences(rng: np.random.Generator) -> None:
+    T = _pose(rng)
+    p_rack = np.array([[0.3, 4.2, 0.1], [1.0, 3.5, 0.3], [0.5, 4.8, 0.0]])
+
+    def project(delta: np.ndarray) -> np.ndarray:
+        Tp = T @ se3.exp(delta)
+        return CAM.project(se3.act(se3.inverse(Tp), p_rack)).ravel()
+
+    p_cam = se3.act(se3.inverse(T), p_rack)
+    _, J = CAM.project_with_jacobian(p_cam)
+    analytic = pose_jacobian(J, p_cam).reshape(-1, 6)
+    np.testing.assert_allclose(analytic, central_jacobian(project, np.zeros(6)), rtol=1e-5, atol=1e-4)
+
+
+def test_gap_motion_field_matches_central_differences(rng: np.random.Generator) -> None:
+    T = _pose(rng)
+    p_rack = np.array([[0.9, 4.2, 0.1], [1.3, 3.5, 0.3]])
+
+    def project(dx: np.ndarray) -> np.ndarray:
+        return CAM.project(se3.act(se3.inverse(T), p_rack + np.array([dx[0], 0.0, 0.0]))).ravel()
+
+    p_cam = se3.act(se3.inverse(T), p_rack)
+    _, J = CAM.project_with_jacobian(p_cam)
+    analytic = gap_jacobian(J, T[:3, :3].T).reshape(-1, 1)
+    np.testing.assert_allclose(analytic, central_jacobian(project, np.zeros(1)), rtol=1e-5, atol=1e-4)
+
+
+def _signed_distance_to_limbs(T: np.ndarray, model: RackModel, uv: np.ndarray, n: np.ndarray,
+                              limb: np.ndarray, gaps: np.ndarray | None = None) -> np.ndarray:
+    """Signed distance along n from uv to the limb line re-rendered at pose T (per sample)."""
+    s = sample_limbs(T, CAM, model.pipe_arrays(gaps), 8, occlusion_margin_px=0.0)
+    out = np.empty(uv.shape[0])
+    for i in range(uv.shape[0]):
+        pts = s.uv[s.limb == limb[i]]
+        a, b = pts[0], pts[-1]
+        t = (b - a) / np.linalg.norm(b - a)
+        # Intersection of the ray uv + k n with the line a + s t.
+        M = np.column_stack([n[i], -t])
+        k, _ = np.linalg.solve(M, a - uv[i])
+        out[i] = k
+    return out
+
+
+def test_limb_normal_motion_matches_rerendered_limbs(rng: np.random.Generator) -> None:
+    """σ = ξᵀ n of limb points equals the numeric derivative of the re-rendered limb's distance."""
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.12], length=10.0)
+    T = _pose(rng)
+    s = sample_limbs(T, CAM, model.pipe_arrays(), 8)
+    pick = np.arange(0, s.uv.shape[0], 5)
+    uv, n, limb = s.uv[pick], s.normal_px[pick], s.limb[pick]
+    sigma = np.einsum("nij,ni->nj", pose_jacobian(s.J_uv_pcam[pick], s.p_cam[pick]), n)
+
+    def dist(delta: np.ndarray) -> np.ndarray:
+        return _signed_distance_to_limbs(T @ se3.exp(delta), model, uv, n, limb)
+
+    numeric = central_jacobian(dist, np.zeros(6), eps=1e-6)
+    np.testing.assert_allclose(sigma, numeric, rtol=1e-3, atol=2e-2)
+    # Gap parameters: cumulative gap k moves pipe k+1.
+    gaps0 = model.cumulative_gaps
+    gap_cols = np.zeros((pick.size, gaps0.size))
+    gi = model.pipe_arrays().gap_index[s.pipe[pick]]
+    g = np.einsum("ni,ni->n", gap_jacobian(s.J_uv_pcam[pick], T[:3, :3].T), n)
+    for j in range(pick.size):
+        if gi[j] >= 0:
+            gap_cols[j, gi[j]] = g[j]
+
+    def dist_g(dg: np.ndarray) -> np.ndarray:
+        return _signed_distance_to_limbs(T, model, uv, n, limb, gaps0 + dg)
+
+    np.testing.assert_allclose(gap_cols, central_jacobian(dist_g, np.zeros(gaps0.size), eps=1e-6),
+                               rtol=1e-3, atol=2e-2)
+
+
+def test_irls_recovers_parameters_despite_outliers(rng: np.random.Generator) -> None:
+    A = rng.normal(size=(300, 6)) * 100.0
+    x_true = rng.normal(size=6) * 0.01
+    r = A @ x_true + rng.normal(0, 0.2, 300)
+    r[:30] += rng.uniform(20, 40, 30)  # 10 % gross outliers
+    x = np.zeros(6)
+    for kind, gate in (("paper", 4.0), ("tukey", None)):
+        x = np.zeros(6)
+        for _ in range(10):
+            w = robust_weights(r - A @ x, kind, 1.0, gate_px=gate)
+            dx, _, _ = solve_normal_equations(A, r - A @ x, w, np.full(6, 1e-6))
+            x = x + dx
+        np.testing.assert_allclose(x, x_true, atol=2e-4)
+    w = robust_weights(np.array([0.0, 1.0, 10.0]), "paper", 1.0, gate_px=5.0)
+    np.testing.assert_allclose(w, [1.0, 0.5, 0.0])
