@@ -136,6 +136,10 @@ def sim_config(out_dir: Path, overrides: dict[str, Any] | None = None) -> Any:
     from companion.data import data_path
 
     data = tomllib.loads(data_path("sim_default.toml").read_text(encoding="utf-8"))
+    rack = data.setdefault("rack", {})
+    model = str(rack.get("model", ""))
+    if model and not Path(model).is_absolute():  # a packaged rack, relative to companion/data
+        rack["model"] = str(data_path(model))
     data.setdefault("logging", {})["flight_root"] = str(out_dir / "flights")
     data.setdefault("mission", {})["photo_folder"] = str(out_dir / "photos")
     data["mission"]["upload_folder"] = str(out_dir / "missions")
