@@ -9,7 +9,7 @@ and attitude. "Features" (10..50) is the tracker's number of texture points (the
 features). Each cell: 10 runs (seeds); the frames of a run are rendered once and fed to the five
 trackers (one per feature count). Errors are those of the camera pose in the rack frame.
 
-Usage: python bench/rack_table1.py [--quick] [--runs N] [--seconds S]
+Usage: python bench/rack_table1.py [--quick] [--runs N] [--seconds S] [--cells p2_f10,p2_f20,p3_f10]
 """
 
 from __future__ import annotations
@@ -207,6 +207,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="reduced set (< 1 min)")
     ap.add_argument("--runs", type=int, default=None)
     ap.add_argument("--seconds", type=float, default=None)
+    ap.add_argument("--cells", default="", help="only these Table I cells, e.g. p2_f10,p2_f20,p3_f10")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     t_start = time.perf_counter()
@@ -215,11 +216,18 @@ def main() -> None:
     else:
         pipes_list, feats_list, runs, seconds = [2, 3, 4, 5], [10, 20, 30, 40, 50], 10, 8.0
     runs = args.runs or runs
+    cells = {c.strip() for c in args.cells.split(",") if c.strip()}
+    if cells:
+        pipes_list, feats_list = [2, 3, 4, 5], [10, 20, 30, 40, 50]
     seconds = args.seconds or seconds
+    all_feats = list(feats_list)
     table: dict[str, Any] = {}
     all_cpu: list[float] = []
     all_wall: list[float] = []
     for n_p in pipes_list:
+        feats_list = [f for f in all_feats if not cells or f"p{n_p}_f{f}" in cells]
+        if not feats_list:
+            continue
         model = rack(n_p)
         cell_runs: dict[int, list[dict[str, Any]]] = {f: [] for f in feats_list}
         for run in range(runs):
@@ -255,8 +263,7 @@ def main() -> None:
         scene = RackScene(true_model, seed=77 + run)
         traj = make_trajectory(rng, true_model, 101 / RATE_HZ if args.quick else 6.0)
         tr = RackTracker(wrong_model, CAMERA, RackTrackerConfig(estimate_gaps=True))
-        res = run_sequence(scene, traj, [tr], rng, gaps_at=100)[0]
-        wg_runs.append(res)
+        wg_runs.append(run_sequence(scene, traj, [tr], rng, gaps_at=100)[0])
     truth = true_model.cumulative_gaps
     wrong_gap = {
         "true_cumulative_gaps_m": truth.tolist(),

@@ -98,14 +98,14 @@ class RackTrackerConfig:
     prior_gap_m: float = 0.05
     reset_prior_translation_m: float = 0.01
     reset_prior_rotation_rad: float = 0.002
-    motion_prior_translation_m: float = 0.01
-    motion_prior_rotation_rad: float = 0.005
+    motion_prior_translation_m: float = 0.03
+    motion_prior_rotation_rad: float = 0.01
     estimate_gaps: bool = False
     estimate_edge_bias: bool = False
     edge_bias_rate_px: float = 0.02
     velocity_prediction: bool = True
     max_texture_points: int = 50
-    texture_weight: float = 2.0
+    texture_weight: float = 10.0
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
