@@ -147,8 +147,7 @@ class UdpServerTransport(ServerTransport):
 
     @property
     def url_for_client(self) -> str:
-        host = "127.0.0.1" if self._host in ("0.0.0.0", "") else self._host
-        return f"udpout:{host}:{self._port}"
+        return f"udpout:{_reachable_host(self._host)}:{self._port}"
 
     @property
     def peer_count(self) -> int:
@@ -263,12 +262,16 @@ class TcpServerTransport(ServerTransport):
 
     @property
     def url_for_client(self) -> str:
-        host = "127.0.0.1" if self._host in ("0.0.0.0", "") else self._host
-        return f"tcp:{host}:{self._port}"
+        return f"tcp:{_reachable_host(self._host)}:{self._port}"
 
     @property
     def peer_count(self) -> int:
         return len(self._writers)
+
+
+def _reachable_host(bind_host: str) -> str:
+    """The address a local client dials for a server bound to `bind_host` (wildcard -> loopback)."""
+    return "127.0.0.1" if bind_host in ("0.0.0.0", "") else bind_host
 
 
 def open_transport(url: str, on_bytes: OnBytes) -> ServerTransport:
