@@ -26,7 +26,7 @@ from companion.errors import InputError
 from companion.vision.rack.model import RackModel
 
 
-def _rotate(rays: FloatArray, R: FloatArray) -> np.ndarray[Any, np.dtype[np.float32]]:
+def _rotate(rays: np.ndarray[Any, Any], R: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.float32]]:
     """`rays @ R.T` for (P, 3) float32 rays, through OpenCV.
 
     numpy's matmul hands large products to the BLAS thread pool, which on a loaded 2-core
