@@ -32,6 +32,9 @@ from companion.geometry import frames
 __all__ = ["FrameInputs", "Measurement", "VisionPipeline", "rack_std_floor_from_config"]
 
 SOURCES = ("rack", "ground", "auto")
+# Extra yaw standard deviation (rad) of a ground increment taken with the pipes in view (the odometer's
+# heading drifts ~0.3 deg per frame over the rack at 15 fps).
+GROUND_PIPES_YAW_STD_RAD = 0.005
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,7 @@ class Measurement:
     rack: Any | None
     ground: Any | None
     process_s: float
+    rack_reset: bool = False  # the rack tracker was re-initialised (FrameInputs.reset_T_ned_body) on this frame
 
     @property
     def rack_ok(self) -> bool:
@@ -85,6 +89,7 @@ class VisionPipeline:
         min_ground_height_m: float = 0.15,
         rack_std_floor: tuple[float, ...] = (0.01, 0.01, 0.01, 0.0087, 0.0087, 0.0087),
         rack_along_pipe_std_m: float = 0.0,
+        ground_pipes_in_view_rel_std: float = 1.0,
     ) -> None:
         if source not in SOURCES:
             raise ConfigError(f"vision.source: must be one of {SOURCES}, got {source!r}")
@@ -96,14 +101,17 @@ class VisionPipeline:
         floor = np.asarray(rack_std_floor, dtype=np.float64).reshape(6)
         self.rack_covariance_floor: FloatArray = np.diag(floor**2)
         self.rack_along_pipe_std_m = float(rack_along_pipe_std_m)
+        self.ground_pipes_in_view_rel_std = float(ground_pipes_in_view_rel_std)
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
+        self._pipe_top_m = 0.0  # mean height of the parallel pipes' tops above the support plane (m)
         self.ground_odometer: Any | None = None
         if source in ("rack", "auto"):
             from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
 
             model = rack_model if rack_model is not None else RackModel.load(_default_rack_path())
             self.rack_tracker = RackTracker(model, camera, rack_config or RackTrackerConfig())
+            self._pipe_top_m = 2.0 * float(np.mean(model.radii))
             self.rack_tracker.reset(self.T_rack_cam_from(T0))
         if source in ("ground", "auto"):
             from companion.vision.ground import GroundOdometer, GroundOdometerConfig
@@ -115,6 +123,9 @@ class VisionPipeline:
         self.frames = 0
         self.rack_ok_frames = 0
         self.ground_ok_frames = 0
+        # Along-pipe standard deviation (m) of the pose the rack tracker was last seeded with (0: the start
+        # pose, taken as exact): the pipes' edges do not correct it, so the tracker keeps that error.
+        self.rack_seed_along_pipe_std_m = 0.0
 
     def T_rack_cam_from(self, T_ned_body: Any) -> FloatArray:
         """Camera pose in the rack frame for a body pose in NED."""
@@ -130,6 +141,7 @@ class VisionPipeline:
         t0 = time.perf_counter()
         if inputs.reset_T_ned_body is not None:
             self.reset_rack(inputs.reset_T_ned_body)
+        rack_reset = inputs.reset_T_ned_body is not None and self.rack_tracker is not None
         rack = None
         ground = None
         if self.rack_tracker is not None:
@@ -138,7 +150,8 @@ class VisionPipeline:
                 and inputs.height_m >= self.min_ground_height_m):
             ground = self.ground_odometer.update(image, stamp_s, inputs.height_m, inputs.roll_rad, inputs.pitch_rad)
         self.frames += 1
-        m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0)
+        m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0,
+                        rack_reset=rack_reset)
         self.rack_ok_frames += int(m.rack_ok)
         self.ground_ok_frames += int(m.ground_ok)
         return m
@@ -150,22 +163,68 @@ class VisionPipeline:
         frame twist order v, w): the tracker's own covariance is a few millimetres, tighter than the
         camera-IMU time alignment on a busy computer, which would make the filter gate good poses out.
         `rack_along_pipe_std_m` > 0 adds that much standard deviation along the pipes' direction, which
-        the pipe edges do not observe (the tracker's texture term can slide along them).
+        the pipe edges do not observe (the tracker's texture term can slide along them). A slide along
+        the pipes by s and a tilt by s / h about the axis across them (h: the pipes' depth) move the
+        texture alike, so the two come together (`_along_pipe_outer`); the filter's roll and pitch,
+        held by gravity, then tell the slide apart from a real tilt.
+
+        After the tracker was re-initialised from the filter's estimate (`Measurement.rack_reset`: after
+        losing the rack, a frame gap or rejected poses), its position along the pipes is that estimate's,
+        carried on by its texture points: nothing in view corrects it. The along-pipe standard deviation
+        is then at least the estimate's at that moment (`rack_seed_along_pipe_std_m`, until the next
+        re-initialisation), so the filter neither takes the seed's error back as a precise measurement
+        (a switch to the rack moves the pose across the pipes, not along them), nor takes the tilt the
+        re-locking tracker shows with it (a few degrees at the rack's end, which leaked gravity into the
+        velocity), nor gates the tracker out while it settles (which re-seeded it again, with zero
+        velocity, and let it slide).
+
+        Ground increments are re-expressed in the filter's heading (`_GroundInHeading.rotated`: the
+        odometer's own heading drifts, by tens of degrees over the rack). On a frame where the rack
+        tracker finds the pipes, the odometer has tracked features on them too (metres above the ground
+        it assumes: about twice the true motion at 5 m over this rack), so the increment's standard
+        deviation is raised by `ground_pipes_in_view_rel_std` times its size.
         """
+        if measurement.rack_reset:
+            self.rack_seed_along_pipe_std_m = self._along_pipe_std(nav_filter)
         if measurement.rack is not None:
             rack = measurement.rack
             if bool(rack.ok):
                 cov = np.asarray(rack.covariance, dtype=np.float64) + self.rack_covariance_floor
-                if self.rack_along_pipe_std_m > 0.0:
-                    # edges do not fix the position along the pipes: say so (rack +y in the camera frame)
-                    d_cam = np.asarray(rack.T_rack_cam, dtype=np.float64)[:3, :3].T @ np.array([0.0, 1.0, 0.0])
-                    cov = cov.copy()
-                    cov[:3, :3] += self.rack_along_pipe_std_m**2 * np.outer(d_cam, d_cam)
+                along_std_m = max(self.rack_along_pipe_std_m, self.rack_seed_along_pipe_std_m)
+                if along_std_m > 0.0:
+                    cov = cov + along_std_m**2 * self._along_pipe_outer(np.asarray(rack.T_rack_cam, dtype=np.float64))
                 rack = _RackWithFloor(rack, cov)
             nav_filter.add_rack(rack, measurement.stamp_s)
         if measurement.ground is not None:
-            nav_filter.add_ground(measurement.ground, measurement.stamp_s)
+            ground = measurement.ground
+            if bool(ground.ok):
+                T_ned_body = np.asarray(nav_filter.estimate_latest().T_ned_body, dtype=np.float64)
+                yaw_filter_rad = float(frames.yaw_from_rotation(T_ned_body[:3, :3]))
+                ground = _GroundInHeading.rotated(ground, yaw_filter_rad - float(ground.yaw_rad))
+                if measurement.rack_ok:
+                    ground = ground.with_pipes_in_view(self.ground_pipes_in_view_rel_std, GROUND_PIPES_YAW_STD_RAD)
+            nav_filter.add_ground(ground, measurement.stamp_s)
         return nav_filter.estimate()
+
+    def _along_pipe_outer(self, T_rack_cam: FloatArray) -> FloatArray:
+        """u u^T (6x6, camera-frame twist (v, w)) of the pose error the pipes' edges do not see.
+
+        Sliding along the pipes by s looks, for the texture on the pipes at depth h, like tilting the
+        camera by s / h about the axis across the pipes: u = (d, (d x z) / h), d the pipes' direction and
+        z the optical axis in the camera frame (the motion field -v + p x w vanishes at p = h z).
+        """
+        d_cam = T_rack_cam[:3, :3].T @ np.array([0.0, 1.0, 0.0])
+        depth_m = max(float(T_rack_cam[2, 3]) - self._pipe_top_m, 0.5)
+        u = np.concatenate([d_cam, np.cross(d_cam, np.array([0.0, 0.0, 1.0])) / depth_m])
+        out: FloatArray = np.outer(u, u)
+        return out
+
+    def _along_pipe_std(self, nav_filter: Any) -> float:
+        """Standard deviation (m) of the filter's current position along the pipes (rack +y in NED)."""
+        P = np.asarray(nav_filter.estimate_latest().pose_covariance, dtype=np.float64)[:3, :3]
+        d_ned = self.T_ned_rack[:3, :3] @ np.array([0.0, 1.0, 0.0])
+        var = float(d_ned @ P @ d_ned)
+        return math.sqrt(var) if math.isfinite(var) and var > 0.0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -182,6 +241,43 @@ class _RackWithFloor:
     @property
     def T_rack_cam(self) -> FloatArray:
         return np.asarray(self.base.T_rack_cam, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class _GroundInHeading:
+    """A ground estimate as the filter reads it (ok, dx_m, dy_m, dyaw_rad, covariance, dt_s) with its
+    horizontal increment re-expressed in the filter's heading.
+
+    The odometer turns its increments into NED with its own accumulated heading, which drifts on its
+    own (and fast over the rack, whose pipes break its ground-plane model) while the rack tracker is the
+    source; the filter's heading is the one the rest of the estimate lives in.
+    """
+
+    ok: bool
+    dx_m: float
+    dy_m: float
+    dyaw_rad: float
+    covariance: FloatArray
+    dt_s: float | None
+
+    def with_pipes_in_view(self, rel_std: float, yaw_std_rad: float) -> _GroundInHeading:
+        """The same increment with its standard deviations raised by `rel_std` times its size (and the
+        yaw one by `yaw_std_rad` more): features on pipes metres above the ground move faster than the
+        ground the odometer assumes (about 2x at 5 m over this rack) and turn its yaw."""
+        extra = np.array([rel_std * abs(self.dx_m), rel_std * abs(self.dy_m),
+                          rel_std * abs(self.dyaw_rad) + yaw_std_rad])
+        cov = self.covariance + np.diag(extra**2)
+        return _GroundInHeading(self.ok, self.dx_m, self.dy_m, self.dyaw_rad, cov, self.dt_s)
+
+    @classmethod
+    def rotated(cls, est: Any, angle_rad: float) -> _GroundInHeading:
+        """`est`'s increment rotated about NED down by `angle_rad` (filter heading - odometer heading)."""
+        c, s = math.cos(angle_rad), math.sin(angle_rad)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        d = R @ np.array([float(est.dx_m), float(est.dy_m), float(est.dyaw_rad)])
+        cov = R @ np.asarray(est.covariance, dtype=np.float64) @ R.T
+        dt_s = getattr(est, "dt_s", None)
+        return cls(True, float(d[0]), float(d[1]), float(d[2]), cov, None if dt_s is None else float(dt_s))
 
 
 def rack_std_floor_from_config(vision: Any) -> tuple[float, ...]:

@@ -89,6 +89,16 @@ class NavFilterConfig:
     rack_failures_to_switch_out: int = 5
     ground_failures_to_switch_out: int = 10
     source_timeout_s: float = 0.5
+    # A switch to the rack whose correction passes the gate but still moves the position by more than
+    # switch_reset_position_m (m) or the attitude by more than switch_reset_angle_rad (rad) is reported
+    # as a reset (reset_counter incremented): the autopilot sees a step either way. Defaults: 3 sigma of
+    # the daemon's rack pose floor (1 cm, 0.5 deg), i.e. beyond what one rack frame's noise explains.
+    switch_reset_position_m: float = 0.03
+    switch_reset_angle_rad: float = 0.026
+    # A rack pose whose roll/pitch fails the gate against the filter's is not healthy ("unsettled")
+    # while the rack is not the source; after this many such frames in a row it is taken anyway (the
+    # filter's own tilt may be the wrong one).
+    rack_unsettled_frames_max: int = 30
     # Time alignment.
     buffer_s: float = 1.0
     max_extrapolation_s: float = 0.2
@@ -105,7 +115,8 @@ class NavFilterConfig:
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_probability < 1.0:
             raise ConfigError(f"NavFilterConfig.gate_probability: must be in (0, 1), got {self.gate_probability}")
-        for name in ("rack_frames_to_switch_in", "rack_failures_to_switch_out", "ground_failures_to_switch_out"):
+        for name in ("rack_frames_to_switch_in", "rack_failures_to_switch_out", "ground_failures_to_switch_out",
+                     "rack_unsettled_frames_max"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"NavFilterConfig.{name}: must be >= 1")
         for name in (
@@ -123,8 +134,10 @@ class NavFilterConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ConfigError(f"NavFilterConfig.{name}: must be finite and > 0, got {value}")
-        if not (math.isfinite(self.max_extrapolation_s) and self.max_extrapolation_s >= 0.0):
-            raise ConfigError("NavFilterConfig.max_extrapolation_s: must be finite and >= 0")
+        for name in ("switch_reset_position_m", "switch_reset_angle_rad", "max_extrapolation_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ConfigError(f"NavFilterConfig.{name}: must be finite and >= 0, got {value}")
         if not 0.0 <= self.range_min_m < self.range_max_m:
             raise ConfigError("NavFilterConfig.range_min_m/range_max_m: need 0 <= min < max")
 

@@ -506,3 +506,99 @@ def test_reset_keeps_the_prior_along_axes_the_rack_barely_measures(yaw_error_rad
     # North: the prior (1 cm) beats the measurement (10 m): the estimate stays at T0 and stays ok.
     assert abs(est.position_ned_m[0] - T0[0, 3]) < 1e-3
     assert est.ok
+
+
+@pytest.mark.parametrize(("offset_m", "expect_reset"), [(0.015, False), (0.12, True)])
+def test_switch_that_passes_the_gate_but_moves_the_estimate_is_a_reset(offset_m: float, expect_reset: bool) -> None:
+    """A loose prior (after dead reckoning) accepts a disagreeing rack pose as an ordinary update; if that
+    moves the pose by more than switch_reset_position_m it is still a step for the autopilot: a reset."""
+    cfg = NavFilterConfig(rack_frames_to_switch_in=2)
+    assert cfg.switch_reset_position_m == 0.03
+    f = static_filter(cfg, pose_std=0.3)  # 30 cm: a 12 cm disagreement is well inside the gate
+    t = 0.0
+    for _ in range(3):
+        t = run_static(f, t, t + 0.05)
+        f.add_ground(FakeGround(True, 0.0, 0.0, 0.0, GROUND_COV), t)
+    assert f.source == "ground"
+    shifted = se3.make(np.eye(3), np.array([offset_m, 0.0, 0.0])) @ T0
+    rack = FakeRack(True, frames.T_rack_cam_from_T_ned_body(
+        shifted, frames.default_T_ned_rack(), frames.default_T_body_cam()), RACK_COV)
+    for _ in range(2):
+        t = run_static(f, t, t + 0.05)
+        p_before = f.estimate_latest().position_ned_m
+        f.add_rack(rack, t)
+    est = f.estimate()
+    step = float(np.linalg.norm(est.position_ned_m - p_before))
+    assert est.source == "rack" and f.stats.count("gated_rack") == 0
+    assert step <= offset_m + 1e-9  # never beyond the disagreement
+    assert (step > cfg.switch_reset_position_m) is expect_reset
+    assert f.reset_counter == int(expect_reset) and est.reset_counter == int(expect_reset)
+    assert f.stats.count("reset_rack") == int(expect_reset)
+    assert f.stats.count("applied_rack") == int(not expect_reset)
+
+
+def test_rack_whose_tilt_disagrees_with_gravity_is_not_switched_to() -> None:
+    """A tracker re-locking with a 3 deg pitch error (roll and pitch are held by the IMU) is left to settle:
+    no switch, no reset; once its tilt agrees, the switch takes its position (a reset if it moved)."""
+    cfg = NavFilterConfig(rack_frames_to_switch_in=2)
+    f = static_filter(cfg, pose_std=0.2)
+    t = 0.0
+    for _ in range(3):
+        t = run_static(f, t, t + 0.05)
+        f.add_ground(FakeGround(True, 0.0, 0.0, 0.0, GROUND_COV), t)
+    assert f.source == "ground"
+    shifted = se3.make(np.eye(3), np.array([0.1, 0.0, 0.0])) @ T0
+    pitched = shifted @ se3.make(so3.exp(np.array([0.0, np.radians(3.0), 0.0])), np.zeros(3))
+
+    def rack_at(T_ned_body: np.ndarray) -> FakeRack:
+        return FakeRack(True, frames.T_rack_cam_from_T_ned_body(
+            T_ned_body, frames.default_T_ned_rack(), frames.default_T_body_cam()), RACK_COV)
+
+    for _ in range(4):
+        t = run_static(f, t, t + 0.05)
+        f.add_rack(rack_at(pitched), t)
+    assert f.source == "ground" and f.reset_counter == 0 and f.stats.count("unsettled_rack") == 4
+    assert f.estimate().ok
+    t = run_static(f, t, t + 0.05)
+    f.add_rack(rack_at(shifted), t)
+    assert f.source == "ground"  # one settled frame: the hysteresis starts again
+    t = run_static(f, t, t + 0.05)
+    f.add_rack(rack_at(shifted), t)
+    est = f.estimate()
+    assert est.source == "rack" and f.reset_counter == 1
+    np.testing.assert_allclose(est.position_ned_m, shifted[:3, 3], atol=5e-3)
+
+
+def test_a_rack_that_stays_tilted_is_taken_after_the_settling_limit() -> None:
+    """The filter's own tilt may be the wrong one: after rack_unsettled_frames_max frames the rack wins."""
+    cfg = NavFilterConfig(rack_frames_to_switch_in=2, rack_unsettled_frames_max=6)
+    f = static_filter(cfg)
+    t = 0.0
+    for _ in range(3):
+        t = run_static(f, t, t + 0.05)
+        f.add_ground(FakeGround(True, 0.0, 0.0, 0.0, GROUND_COV), t)
+    pitched = T0 @ se3.make(so3.exp(np.array([0.0, np.radians(4.0), 0.0])), np.zeros(3))
+    rack = FakeRack(True, frames.T_rack_cam_from_T_ned_body(
+        pitched, frames.default_T_ned_rack(), frames.default_T_body_cam()), RACK_COV)
+    for _ in range(6):
+        t = run_static(f, t, t + 0.05)
+        f.add_rack(rack, t)
+    assert f.source == "ground" and f.stats.count("unsettled_rack") == 6
+    for _ in range(2):
+        t = run_static(f, t, t + 0.05)
+        f.add_rack(rack, t)
+    est = f.estimate()
+    assert est.source == "rack" and f.reset_counter == 1
+    np.testing.assert_allclose(so3.log(est.T_ned_body[:3, :3].T @ pitched[:3, :3]), 0.0, atol=2e-3)
+    # The limit counts one settling: lost and back, a tracker tilted against the new attitude waits again.
+    failed = FakeRack(False, rack.T_rack_cam, RACK_COV)
+    for _ in range(5):
+        t = run_static(f, t, t + 0.05)
+        f.add_ground(FakeGround(True, 0.0, 0.0, 0.0, GROUND_COV), t)
+        f.add_rack(failed, t)
+    assert f.source == "ground"
+    level = FakeRack(True, frames.T_rack_cam_from_T_ned_body(
+        T0, frames.default_T_ned_rack(), frames.default_T_body_cam()), RACK_COV)
+    t = run_static(f, t, t + 0.05)
+    f.add_rack(level, t)
+    assert f.source == "ground" and f.stats.count("unsettled_rack") == 7
