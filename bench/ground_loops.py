@@ -57,6 +57,7 @@ class Runner:
     seconds: dict[str, float] = field(default_factory=dict)
     failures: dict[str, int] = field(default_factory=dict)
     increments: dict[str, list[list[float]]] = field(default_factory=dict)
+    bias_errors: dict[str, list[list[float]]] = field(default_factory=dict)
 
 
 def camera() -> PinholeCamera:
@@ -77,8 +78,9 @@ def datasets(quick: bool) -> list[tuple[str, GroundTrajectory, str]]:
     ]
 
 
-def imu_noise(tr: GroundTrajectory, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Measured roll, pitch (true + white + Gauss-Markov bias) and height (true + white)."""
+def imu_noise(tr: GroundTrajectory, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Measured roll, pitch (true + white + Gauss-Markov bias), height (true + white), and the
+    bias itself (n, 2) (roll, pitch; only to score the odometer's bias estimate)."""
     n = len(tr)
     dt = 1.0 / RATE_HZ
     phi = math.exp(-dt / IMU_BIAS_TAU_S)
@@ -92,7 +94,7 @@ def imu_noise(tr: GroundTrajectory, rng: np.random.Generator) -> tuple[np.ndarra
     roll = tr.roll_rad + bias[:, 0] + white[:, 0]
     pitch = tr.pitch_rad + bias[:, 1] + white[:, 1]
     height = tr.height_m + rng.standard_normal(n) * RANGE_STD_M
-    return roll, pitch, height
+    return roll, pitch, height, bias
 
 
 def photometric(k: int, n: int, rng: np.random.Generator) -> dict[str, float]:
@@ -134,13 +136,14 @@ def run(quick: bool, detectors: tuple[str, ...], only: tuple[str, ...] = ()) -> 
     extra = {
         "orb-no-subpixel": GroundOdometerConfig(subpixel=False),
         "orb-no-tilt": GroundOdometerConfig(estimate_tilt=False),
+        "orb-no-tilt-bias": GroundOdometerConfig(estimate_tilt_bias=False),
         "orb-no-robust": GroundOdometerConfig(robust="none"),
         "orb-mad": GroundOdometerConfig(robust="mad"),
         "orb-keyframes-no-tilt": GroundOdometerConfig(keyframes=True, estimate_tilt=False),
         "orb-keyframes-tilt": GroundOdometerConfig(keyframes=True, estimate_tilt=True),
     }
     for name, cfg in extra.items():
-        if not quick or name in ("orb-no-subpixel", "orb-no-tilt"):
+        if not quick or name in ("orb-no-subpixel", "orb-no-tilt", "orb-no-tilt-bias"):
             ablation[name] = Runner(name, "imu", GroundOdometer(cam, cfg))
     everything = runners + agreement + [r for name, r in ablation.items() if name in extra]
     data_info: dict[str, Any] = {}
@@ -149,13 +152,14 @@ def run(quick: bool, detectors: tuple[str, ...], only: tuple[str, ...] = ()) -> 
             continue
         scene = GroundScene(cam, texture=texture, north_range_m=(-5.0, 5.0), east_range_m=(-3.0, 6.0), seed=ds_index)
         rng = np.random.default_rng(100 + ds_index)
-        roll_m, pitch_m, height_m = imu_noise(tr, rng)
+        roll_m, pitch_m, height_m, bias_true = imu_noise(tr, rng)
         data_info[ds] = {"frames": len(tr), "trajectory": tr.name, "texture": texture, "seconds": float(tr.stamp_s[-1])}
         for r in everything:
             r.errors[ds] = []
             r.seconds[ds] = 0.0
             r.failures[ds] = 0
             r.increments[ds] = []
+            r.bias_errors[ds] = []
             if isinstance(r.odo, PlanarBaseline):
                 r.odo.reset(float(tr.x_m[0]), float(tr.y_m[0]), float(tr.yaw_rad[0]))
             else:
@@ -182,6 +186,9 @@ def run(quick: bool, detectors: tuple[str, ...], only: tuple[str, ...] = ()) -> 
                 else:
                     est = r.odo.update(img, float(tr.stamp_s[k]), h, ro, pi)
                     r.increments[ds].append([est.dx_m, est.dy_m, est.dyaw_rad])
+                    if r.condition == "imu":
+                        b_roll, b_pitch = r.odo.tilt_bias_rad
+                        r.bias_errors[ds].append([b_roll, b_pitch, float(bias_true[k, 0]), float(bias_true[k, 1])])
                 r.seconds[ds] += time.perf_counter() - t0
                 r.failures[ds] += 0 if est.ok else 1
                 dyaw = math.remainder(est.yaw_rad - float(tr.yaw_rad[k]), 2 * math.pi)
@@ -227,8 +234,18 @@ def run(quick: bool, detectors: tuple[str, ...], only: tuple[str, ...] = ()) -> 
         "closed_forms_only": agree(agreement[2], agreement[3]),
     }
     abl = {name: table(r)["Loops"] for name, r in ablation.items()}
-    abl[f"{ref} (default: gen+lm+tilt+subpixel+kalman+ransac)"] = tables["imu"][ref]["Loops"]
+    abl[f"{ref} (default: gen+lm+tilt+tilt-bias+subpixel+kalman+ransac)"] = tables["imu"][ref]["Loops"]
     speed = orb_speed(cam, quick)
+    bias_tracking: dict[str, list[float]] = {}
+    for r in runners:
+        if r.condition == "imu" and r.name == ref:
+            rows_b = np.asarray([row for ds in r.bias_errors for row in r.bias_errors[ds]])
+            est_b, true_b = np.degrees(rows_b[:, :2]), np.degrees(rows_b[:, 2:])
+            bias_tracking = {
+                "true_rms_deg": [float(v) for v in np.sqrt(np.mean(true_b**2, axis=0))],
+                "error_rms_deg": [float(v) for v in np.sqrt(np.mean((est_b - true_b) ** 2, axis=0))],
+                "correlation": [float(np.corrcoef(est_b[:, j], true_b[:, j])[0, 1]) for j in range(2)],
+            }
     imu_orb = tables["imu"][ref]["Loops"]
     acceptance = {
         "orb_imu_loops_xy_le_3cm": imu_orb["x_m"] <= 0.03 and imu_orb["y_m"] <= 0.03,
@@ -261,6 +278,7 @@ def run(quick: bool, detectors: tuple[str, ...], only: tuple[str, ...] = ()) -> 
         "ratio_reference_detector": ref,
         "gen_vs_sma": gen_sma,
         "ablation_imu_loops": abl,
+        "tilt_bias_tracking_roll_pitch": bias_tracking,
         "orb_speed": speed,
         "acceptance": acceptance,
     }
@@ -270,7 +288,7 @@ def orb_speed(cam: PinholeCamera, quick: bool) -> dict[str, Any]:
     """ORB odometer alone on pre-rendered frames: frames/s of the time inside update()."""
     tr = loop_trajectory(1, RATE_HZ, seconds_per_loop=16.0, seed=7)
     n = min(len(tr), 100 if quick else 300)
-    results = {}
+    results: dict[str, dict[str, Any]] = {}
     for texture in ("gravel", "grass") if quick else ("gravel", "grass", "brick"):
         scene = GroundScene(cam, texture=texture, north_range_m=(-5.0, 5.0), east_range_m=(-3.0, 6.0), seed=7)
         frames = [

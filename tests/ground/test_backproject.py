@@ -24,7 +24,8 @@ def _independent(cam: PinholeCamera, uv: np.ndarray, T_body_cam: np.ndarray, pos
     d = cam.unproject(uv) @ T_ned_cam[:3, :3].T
     t = h / d[:, 2]
     hits = origin + t[:, None] * d
-    return hits[:, :2]
+    out: np.ndarray = hits[:, :2]
+    return out
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,8 @@ CAM = PinholeCamera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.
 def _dot_texture() -> np.ndarray:
     """A tile with one smooth bright blob at its centre: identical under every flip/rotation."""
     ys, xs = np.mgrid[0:65, 0:65]
-    return np.rint(255 * np.exp(-((xs - 32.0) ** 2 + (ys - 32.0) ** 2) / (2 * 3.0**2))).astype(np.uint8)
+    tile: np.ndarray = np.rint(255 * np.exp(-((xs - 32.0) ** 2 + (ys - 32.0) ** 2) / (2 * 3.0**2))).astype(np.uint8)
+    return tile
 
 
 def _expected_pixel(scene: GroundScene, cam: PinholeCamera, pose: tuple[float, ...], uv_tex: np.ndarray) -> np.ndarray:

@@ -43,15 +43,27 @@ def ground_points_level(
     camera's optical centre above the ground. Returns q and a mask of rays that hit the ground in
     front of the camera (q is NaN elsewhere).
     """
+    rays_L, offset, valid = ground_rays_level(rays_cam, roll_rad, pitch_rad, T_body_cam)
+    q = rays_L[:, :2] * height_m + offset
+    return q, valid
+
+
+def ground_rays_level(
+    rays_cam: FloatArray, roll_rad: float, pitch_rad: float, T_body_cam: FloatArray
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Rays in the level frame L scaled to unit depth along down (N, 3), (x/z, y/z, 1); the camera
+    centre's horizontal offset from the body origin in L (2,), metres; and the mask of rays that
+    hit the ground in front of the camera (NaN rays elsewhere). The ground point at camera height h
+    is offset + h * ray[:2] (`ground_points_level`)."""
     R_L_body = level_from_body(roll_rad, pitch_rad)
     R_L_cam = R_L_body @ T_body_cam[:3, :3]
     r_L = rays_cam @ R_L_cam.T
     norm = np.sqrt(np.einsum("ij,ij->i", r_L, r_L))
     valid: BoolArray = r_L[:, 2] > MIN_RAY_DOWN_COS * norm
-    scale = np.where(valid, height_m / np.where(valid, r_L[:, 2], 1.0), np.nan)
-    offset = R_L_body @ T_body_cam[:3, 3]
-    q = r_L[:, :2] * scale[:, None] + offset[:2]
-    return q, valid
+    scale = np.where(valid, 1.0 / np.where(valid, r_L[:, 2], 1.0), np.nan)
+    rays_L: FloatArray = r_L * scale[:, None]
+    offset: FloatArray = (R_L_body @ T_body_cam[:3, 3])[:2]
+    return rays_L, offset, valid
 
 
 def rays_from_pixels(fx: float, fy: float, cx: float, cy: float, skew: float, uv_px: FloatArray) -> FloatArray:

@@ -26,6 +26,14 @@ class GroundOdometerConfig:
                      roll/pitch and height input errors of both frames cause (see
                      `refine.refine_with_tilt`), so IMU attitude noise leaks less into dyaw.
                      Needs refine = True.
+    estimate_tilt_bias: beyond the paper: with `estimate_tilt`, also track the slowly varying part of
+                     the roll/pitch input error (first-order Gauss-Markov, `tilt_bias_std_rad`,
+                     `tilt_bias_tau_s`) across frames with a small Kalman state (`tilt_bias`): it is
+                     shared by both frames of every pair, weakly visible in one pair, and otherwise
+                     leaks into the yaw and translation increments and accumulates.
+    tilt_bias_std_rad: stationary standard deviation of that slow roll/pitch error (rad; 0.25 deg);
+                     0 switches the bias estimate off (as estimate_tilt_bias = False).
+    tilt_bias_tau_s: its correlation time (s).
     kalman:          constant-acceleration Kalman filter on the increments (eq. 27).
     keyframes:       beyond the paper: match each frame against a keyframe (not only the previous
                      frame) while at least `keyframe_min_inlier_fraction` of the keyframe's first
@@ -56,12 +64,15 @@ class GroundOdometerConfig:
     kalman_yaw_accel_psd: same for yaw ((rad/s^3)^2 / Hz).
     min_measurement_std_m / min_measurement_std_rad: floor of the increment standard deviations
                      fed to the Kalman filter.
-    attitude_std_rad: standard deviation of the roll/pitch inputs (IMU attitude error, default 0.5 deg).
+    attitude_std_rad: standard deviation of the frame-to-frame (white) part of the roll/pitch input
+                     error (IMU attitude error, default 0.5 deg).
                      A tilt error moves every ground point by about height * error, unevenly across
                      the image, so it widens the inlier threshold (+ 2 * height * std) and enters the
                      increment covariance (2 (height * std)^2 per axis: both frames' errors).
     feature_std_px:  standard deviation of a feature's image position (pixels), the data weight of the
-                     tilt-aware refinement.
+                     tilt-aware refinement (with `estimate_tilt_bias`: of its first pass; the second
+                     pass weighs each pair by the scatter of its own residuals, at least
+                     `feature_std_min_px`).
     height_std_m:    standard deviation of the height input (rangefinder), for the covariance.
     seed:            seed of the RANSAC sampler (deterministic output).
     """
@@ -71,6 +82,9 @@ class GroundOdometerConfig:
     refine: bool = True
     subpixel: bool = True
     estimate_tilt: bool = True
+    estimate_tilt_bias: bool = True
+    tilt_bias_std_rad: float = 0.0044
+    tilt_bias_tau_s: float = 20.0
     kalman: bool = True
     keyframes: bool = False
     keyframe_min_inlier_fraction: float = 0.5
@@ -96,6 +110,7 @@ class GroundOdometerConfig:
     min_measurement_std_rad: float = 1e-4
     attitude_std_rad: float = 0.0087
     feature_std_px: float = 0.5
+    feature_std_min_px: float = 0.05
     height_std_m: float = 0.01
     seed: int = 0
 
@@ -115,10 +130,12 @@ class GroundOdometerConfig:
             "ransac_hypotheses": self.ransac_hypotheses,
             "lm_iterations": self.lm_iterations,
             "feature_std_px": self.feature_std_px,
+            "feature_std_min_px": self.feature_std_min_px,
             "kalman_accel_psd": self.kalman_accel_psd,
             "kalman_yaw_accel_psd": self.kalman_yaw_accel_psd,
             "min_measurement_std_m": self.min_measurement_std_m,
             "min_measurement_std_rad": self.min_measurement_std_rad,
+            "tilt_bias_tau_s": self.tilt_bias_tau_s,
         }
         for name, value in positive.items():
             if not value > 0:
@@ -133,8 +150,8 @@ class GroundOdometerConfig:
             raise ConfigError(f"ratio: must be in (0, 1], got {self.ratio}")
         if not self.pyramid_scale > 1.0:
             raise ConfigError(f"pyramid_scale: must be > 1, got {self.pyramid_scale}")
-        if self.attitude_std_rad < 0 or self.height_std_m < 0:
-            raise ConfigError("attitude_std_rad / height_std_m: must be >= 0")
+        if self.attitude_std_rad < 0 or self.height_std_m < 0 or self.tilt_bias_std_rad < 0:
+            raise ConfigError("attitude_std_rad / height_std_m / tilt_bias_std_rad: must be >= 0")
         if self.gate_margin_m < 0:
             raise ConfigError(f"gate_margin_m: must be >= 0, got {self.gate_margin_m}")
         if self.min_inliers < 3:

@@ -18,7 +18,8 @@ class Matcher:
     """Brute-force nearest-neighbour matcher (Hamming for binary descriptors, L2 otherwise)."""
 
     def __init__(self, binary: bool, ratio: float) -> None:
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING if binary else cv2.NORM_L2, crossCheck=False)
+        self._norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
+        self._dtype = cv2.CV_32S if binary else cv2.CV_32F
         self._ratio = float(ratio)
 
     def match(self, prev: Features, cur: Features) -> tuple[IntArray, IntArray]:
@@ -26,18 +27,18 @@ class Matcher:
         if prev.count < 2 or cur.count < 2:
             empty = np.zeros(0, dtype=np.intp)
             return empty, empty
-        knn = self._matcher.knnMatch(cur.descriptors, prev.descriptors, k=2)
-        rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2]
-        if not rows:
-            empty = np.zeros(0, dtype=np.intp)
-            return empty, empty
-        arr = np.asarray(rows, dtype=np.float64)
-        keep = arr[:, 2] < self._ratio * arr[:, 3]
-        arr = arr[keep]
-        i_cur = arr[:, 0].astype(np.intp)
-        i_prev = arr[:, 1].astype(np.intp)
+        # Brute-force two nearest neighbours as arrays (what BFMatcher.knnMatch computes, without
+        # building a DMatch object per feature).
+        dist, idx = cv2.batchDistance(
+            cur.descriptors, prev.descriptors, self._dtype, normType=self._norm, K=2, update=0, crosscheck=False
+        )
+        dist = dist.astype(np.float64)
+        keep = dist[:, 0] < self._ratio * dist[:, 1]
+        i_cur = np.flatnonzero(keep).astype(np.intp)
+        i_prev = idx[keep, 0].astype(np.intp)
+        best = dist[keep, 0]
         # One current feature per previous feature: keep the best distance when several claim it.
-        order = np.lexsort((arr[:, 2], i_prev))
+        order = np.lexsort((best, i_prev))
         first = np.ones(order.size, dtype=bool)
         first[1:] = i_prev[order][1:] != i_prev[order][:-1]
         sel = order[first]

@@ -20,13 +20,20 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError
 from companion.geometry import frames
-from companion.vision.ground import kalman
-from companion.vision.ground.backproject import ground_points_level, level_from_body, rays_from_pixels
+from companion.vision.ground import kalman, tilt_bias
+from companion.vision.ground.backproject import ground_rays_level, rays_from_pixels
 from companion.vision.ground.closed_form import gen_to_increment, solve_gen, solve_sma
 from companion.vision.ground.config import GroundOdometerConfig
 from companion.vision.ground.features import FeatureExtractor, Features
 from companion.vision.ground.matching import Matcher, speed_gate
-from companion.vision.ground.refine import RefineResult, evaluate, refine, refine_with_tilt, tilt_fields
+from companion.vision.ground.refine import (
+    RefineResult,
+    evaluate,
+    refine,
+    refine_tilt_exact,
+    refine_with_tilt,
+    tilt_fields,
+)
 from companion.vision.ground.robust import mad_trim, ransac_rigid, residual_norms
 
 MAX_HEIGHT_M = 100.0
@@ -78,6 +85,7 @@ class _Frame:
     gray: np.ndarray[Any, Any]
     roll_rad: float
     pitch_rad: float
+    rays_level: FloatArray  # (N, 3) the features' rays in the level frame at unit depth
 
 
 @dataclass(frozen=True)
@@ -139,9 +147,22 @@ class GroundOdometer:
         self._prev: _Anchor | None = None  # last good frame
         self._prev_rel_cov = np.zeros((3, 3))
         self._kf: kalman.KalmanState | None = None
+        self._tilt: tilt_bias.TiltState | None = None  # slow tilt bias + white errors of the last good frame
+        self._pending_tilt: tilt_bias.TiltState | None = None
         self._last_stamp_s: float | None = None
         self._rng = np.random.default_rng(self.config.seed)
         self._extractor.reset()
+
+    @property
+    def tilt_bias_rad(self) -> tuple[float, float]:
+        """Current estimate of the slow roll/pitch input bias (roll, pitch), rad, small-angle:
+        the measured attitude minus the true one (zero until estimated; `estimate_tilt_bias`)."""
+        if self._tilt is None:
+            return (0.0, 0.0)
+        # The refinement corrects measured points by + coefficient * field: roll error -> -field 0
+        # coefficient, pitch error -> +field 1 (tilt_fields), so the correction is their negative.
+        beta = self._tilt.bias_rad
+        return (float(beta[0]), -float(beta[1]))
 
     # ------------------------------------------------------------------ input checks
     def _gray(self, image: Any) -> np.ndarray[Any, Any]:
@@ -204,6 +225,8 @@ class GroundOdometer:
                 self._prev_rel_cov = np.zeros((3, 3))
             return self._estimate(False, np.zeros(3), np.zeros((3, 3)), num_matches, num_inliers, stamp, 0.0, 0.0)
 
+        if self._pending_tilt is not None:
+            self._tilt = self._pending_tilt
         rel = result.increment
         raw_new = (used.pose[0] + float(rel[0]), used.pose[1] + float(rel[1]), used.pose[2] + float(rel[2]))
         increment = np.array(
@@ -253,14 +276,21 @@ class GroundOdometer:
         q_a = ref.frame.q_level_m[i_prev]
         valid = ref.frame.valid[i_prev] & cur.valid[i_cur]
         if self.config.subpixel and i_prev.size > 0:
-            q_b, valid_b = self._subpixel(ref.frame, cur, i_prev, i_cur)
+            q_b, valid_b, rays_b = self._subpixel(ref.frame, cur, i_prev, i_cur)
             valid &= valid_b
         else:
             q_b = cur.q_level_m[i_cur]
+            rays_b = cur.rays_level[i_cur]
+        rays_a = ref.frame.rays_level[i_prev]
         dt = cur.stamp_s - ref.frame.stamp_s
-        result, num_inliers = self._solve(ref.frame, cur, q_a[valid], q_b[valid], dt, ref.pose[2])
+        self._pending_tilt = None
+        result, num_inliers = self._solve(
+            ref.frame, cur, q_a[valid], q_b[valid], rays_a[valid], rays_b[valid], dt, ref.pose[2]
+        )
         if num_inliers < self.config.min_inliers:
             result = None
+        if result is None:
+            self._pending_tilt = None
         return result, int(i_prev.size), num_inliers
 
     def _subpixel(
@@ -269,10 +299,11 @@ class GroundOdometer:
         cur: _Frame,
         i_prev: np.ndarray[Any, np.dtype[np.intp]],
         i_cur: np.ndarray[Any, np.dtype[np.intp]],
-    ) -> tuple[FloatArray, np.ndarray[Any, np.dtype[np.bool_]]]:
+    ) -> tuple[FloatArray, np.ndarray[Any, np.dtype[np.bool_]], FloatArray]:
         """Sub-pixel positions of the matches in `cur`: one Lucas-Kanade step from the detected
         position, tracking the reference keypoint's patch (detectors like ORB/FAST report integer
-        pixels, whose rounding biases the increments). Returns their ground points and validity."""
+        pixels, whose rounding biases the increments). Returns their ground points, validity and
+        level-frame rays."""
         uv_ref = ref.features.uv_px[i_prev].astype(np.float32).reshape(-1, 1, 2)
         uv0 = cur.features.uv_px[i_cur].astype(np.float32).reshape(-1, 1, 2)
         uv1, status, _ = cv2.calcOpticalFlowPyrLK(
@@ -289,8 +320,8 @@ class GroundOdometer:
         moved = np.abs(uv - uv0.reshape(-1, 2)).max(axis=1)
         good = (status.ravel() == 1) & (moved < _LK_MAX_CORRECTION_PX)
         uv = np.where(good[:, None], uv, uv0.reshape(-1, 2))
-        q, valid = ground_points_level(self._rays(uv), cur.height_m, cur.roll_rad, cur.pitch_rad, self.T_body_cam)
-        return q, valid
+        rays_L, offset, valid = ground_rays_level(self._rays(uv), cur.roll_rad, cur.pitch_rad, self.T_body_cam)
+        return rays_L[:, :2] * cur.height_m + offset, valid, rays_L
 
     # ------------------------------------------------------------------ stages
     def _rays(self, uv: FloatArray) -> FloatArray:
@@ -305,14 +336,22 @@ class GroundOdometer:
     def _backproject(
         self, gray: np.ndarray[Any, Any], feats: Features, stamp: float, h: float, roll: float, pitch: float
     ) -> _Frame:
-        q, valid = ground_points_level(self._rays(feats.uv_px), h, roll, pitch, self.T_body_cam)
-        nadir = (level_from_body(roll, pitch) @ self.T_body_cam[:3, 3])[:2]
-        return _Frame(feats, q, valid, stamp, h, nadir, gray, roll, pitch)
+        rays_L, nadir, valid = ground_rays_level(self._rays(feats.uv_px), roll, pitch, self.T_body_cam)
+        q = rays_L[:, :2] * h + nadir
+        return _Frame(feats, q, valid, stamp, h, nadir, gray, roll, pitch, rays_L)
 
     def _solve(
-        self, ref: _Frame, cur: _Frame, q_a: FloatArray, q_b: FloatArray, dt: float, yaw_ref: float
+        self,
+        ref: _Frame,
+        cur: _Frame,
+        q_a: FloatArray,
+        q_b: FloatArray,
+        rays_a: FloatArray,
+        rays_b: FloatArray,
+        dt: float,
+        yaw_ref: float,
     ) -> tuple[RefineResult | None, int]:
-        """Gate, reject outliers, solve and refine for matched level-frame ground points."""
+        """Gate, reject outliers, solve and refine for matched level-frame ground points (and rays)."""
         cfg = self.config
         if q_a.shape[0] < cfg.min_inliers:
             return None, int(q_a.shape[0])
@@ -320,9 +359,6 @@ class GroundOdometer:
         R = np.array([[c, -s], [s, c]])
         a = q_a @ R.T
         b = q_b @ R.T
-        # Warp fields of tilt errors of both frames (only used by the tilt-aware refinement).
-        fb = tilt_fields(q_b, cur.nadir_level_m, cur.height_m) @ R.T
-        fa = tilt_fields(q_a, ref.nadir_level_m, ref.height_m) @ R.T
 
         # Speed gate, centred on the Kalman prediction when the filter is running.
         pred = np.zeros(3)
@@ -331,7 +367,7 @@ class GroundOdometer:
         gate = speed_gate(
             a, b, pred[:2], float(pred[2]), cfg.max_speed_m_s * dt + cfg.gate_margin_m, cfg.max_yaw_rate_rad_s * dt
         )
-        a, b, fa, fb = a[gate], b[gate], fa[:, gate], fb[:, gate]
+        a, b, q_a, q_b, rays_a, rays_b = a[gate], b[gate], q_a[gate], q_b[gate], rays_a[gate], rays_b[gate]
         n_gated = a.shape[0]
         if n_gated < cfg.min_inliers:
             return None, n_gated
@@ -354,7 +390,7 @@ class GroundOdometer:
             inl = residual_norms(a, b, gen_to_increment(solve_gen(a[inl], b[inl]))) <= threshold_m
             if inl.sum() < cfg.min_inliers or inl.sum() < cfg.min_inlier_ratio * n_gated:
                 return None, int(inl.sum())
-        result = self._fit(a[inl], b[inl], fb[:, inl], fa[:, inl])
+        result = self._fit(a[inl], b[inl], q_a[inl], q_b[inl], rays_a[inl], rays_b[inl], R, ref, cur)
         return self._with_input_noise(result, a[inl], b[inl], ref.height_m, cur.height_m), int(inl.sum())
 
     def _with_input_noise(
@@ -375,10 +411,64 @@ class GroundOdometer:
         cov[1, 1] += att_var + h_var
         return RefineResult(result.increment, cov, result.rms_m, result.iterations)
 
-    def _fit(self, a: FloatArray, b: FloatArray, fields_b: FloatArray, fields_a: FloatArray) -> RefineResult:
+    def _fit(
+        self,
+        a: FloatArray,
+        b: FloatArray,
+        q_a: FloatArray,
+        q_b: FloatArray,
+        rays_a: FloatArray,
+        rays_b: FloatArray,
+        R: FloatArray,
+        ref: _Frame,
+        cur: _Frame,
+    ) -> RefineResult:
+        """Closed form + refinement. `a`, `b`: NED-aligned points (level points `q_a`, `q_b` rotated
+        by `R` = R(yaw_ref)); `rays_a`, `rays_b`: their level-frame rays (exact tilt model)."""
         cfg = self.config
         initial = gen_to_increment(solve_gen(a, b)) if cfg.solver == "gen" else solve_sma(a, b)
+        if cfg.refine and cfg.estimate_tilt and cfg.estimate_tilt_bias and cfg.tilt_bias_std_rad > 0:
+            data_std_m = cfg.feature_std_px * self._height_scale / self._focal_px
+            z0, Pz = tilt_bias.pair_prior(
+                self._tilt,
+                ref.stamp_s,
+                cur.stamp_s,
+                cfg.tilt_bias_std_rad,
+                cfg.tilt_bias_tau_s,
+                cfg.attitude_std_rad,
+                self._height_rel_std[0],
+                self._height_rel_std[1],
+            )
+            # Solve in the reference frame's level frame (the rays' frame), rotate d back to NED.
+            initial_level = np.array([*(R.T @ initial[:2]), initial[2]])
+
+            # The bias evidence is weak per pair: after the first step each pair is weighed by its own
+            # point scatter (blurred or badly matched frames scatter far more than the nominal
+            # feature_std_px, sharp ones less), at least feature_std_min_px.
+            out = refine_tilt_exact(
+                rays_a,
+                ref.height_m,
+                ref.nadir_level_m,
+                rays_b,
+                cur.height_m,
+                cur.nadir_level_m,
+                initial_level,
+                data_std_m,
+                z0,
+                Pz,
+                tilt_bias.MAP_B,
+                tilt_bias.MAP_A,
+                cfg.lm_iterations,
+                data_std_floor_m=cfg.feature_std_min_px * self._height_scale / self._focal_px,
+            )
+            self._pending_tilt = tilt_bias.state_after(out.nuisance_mean, out.nuisance_cov, cur.stamp_s)
+            T = np.eye(3)
+            T[:2, :2] = R
+            res = out.result
+            return RefineResult(T @ res.increment, T @ res.covariance @ T.T, res.rms_m, res.iterations)
         if cfg.refine and cfg.estimate_tilt:
+            fields_b = tilt_fields(q_b, cur.nadir_level_m, cur.height_m) @ R.T
+            fields_a = tilt_fields(q_a, ref.nadir_level_m, ref.height_m) @ R.T
             data_std_m = cfg.feature_std_px * self._height_scale / self._focal_px
             att = cfg.attitude_std_rad
             prior_std = np.array([att, att, self._height_rel_std[1], att, att, self._height_rel_std[0]])
