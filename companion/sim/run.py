@@ -178,7 +178,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     out = out if out is not None else sys.stdout
     out_dir = options.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    mission_path = options.mission_path or data_path("missions/rack_sweep.xml")
+    mission_path = options.mission_path or data_path("missions/paper_sweep.xml")
     config = sim_config(out_dir, options.config_overrides)
     mission = load_mission(mission_path, limits=mission_limits(config))  # the vehicle's ceiling and speed
     camera_model = load_camera_model(config.camera)
