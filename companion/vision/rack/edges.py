@@ -11,6 +11,7 @@ the opposite polarity). Pixels follow OpenCV (integer coordinates are pixel cent
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,7 @@ import numpy as np
 from companion.checks import FloatArray
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
+Float32Array = np.ndarray[Any, np.dtype[np.float32]]
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,18 @@ class EdgeMeasurements:
     found: BoolArray
     sign: FloatArray
     strength: FloatArray
+
+
+@functools.lru_cache(maxsize=64)
+def _search_constants(R: int, prior_sigma_px: float | None) -> tuple[Float32Array, Float32Array]:
+    """Read-only float32 offsets k = -R-1..R+1 (2R+3,) and the Gaussian distance prior (2R+1,)."""
+    k = np.arange(-R - 1, R + 2, dtype=np.float32)
+    sigma = float(prior_sigma_px) if prior_sigma_px is not None else max(float(R), 1.0)
+    kk = np.arange(-R, R + 1, dtype=np.float32)
+    prior: Float32Array = np.exp(-0.5 * (kk / sigma) ** 2)
+    k.flags.writeable = False
+    prior.flags.writeable = False
+    return k, prior
 
 
 def search_edges(
@@ -57,24 +71,26 @@ def search_edges(
     if n == 0:
         z = np.zeros(0)
         return EdgeMeasurements(offset_px=z, found=np.zeros(0, dtype=bool), sign=z, strength=z)
-    k = np.arange(-R - 1, R + 2, dtype=np.float32)  # 2R + 3 positions
-    taps = (
-        np.array([-tangent_offset_px, 0.0, tangent_offset_px], dtype=np.float32)
-        if tangent_offset_px > 0
-        else np.zeros(1, dtype=np.float32)
-    )
-    n_taps = taps.size
+    k, prior = _search_constants(R, prior_sigma_px)
     nrm = normal.astype(np.float32)
-    tan = np.stack([-nrm[:, 1], nrm[:, 0]], axis=1)
     base = uv.astype(np.float32)
-    # positions (N, 3, 2R+3, 2)
-    pos = (
-        base[:, None, None, :]
-        + taps[None, :, None, None] * tan[:, None, None, :]
-        + k[None, None, :, None] * nrm[:, None, None, :]
-    )
-    mx = np.ascontiguousarray(pos[..., 0].reshape(n * n_taps, -1))
-    my = np.ascontiguousarray(pos[..., 1].reshape(n * n_taps, -1))
+    if tangent_offset_px > 0:
+        taps = np.array([-tangent_offset_px, 0.0, tangent_offset_px], dtype=np.float32)
+        n_taps = taps.size
+        tan = np.stack([-nrm[:, 1], nrm[:, 0]], axis=1)
+        # positions (N, 3, 2R+3, 2)
+        pos = (
+            base[:, None, None, :]
+            + taps[None, :, None, None] * tan[:, None, None, :]
+            + k[None, None, :, None] * nrm[:, None, None, :]
+        )
+        mx = np.ascontiguousarray(pos[..., 0].reshape(n * n_taps, -1))
+        my = np.ascontiguousarray(pos[..., 1].reshape(n * n_taps, -1))
+    else:
+        # One line per sample: base + k n (the same float32 arithmetic as the three-tap form).
+        n_taps = 1
+        mx = base[:, 0:1] + k[None, :] * nrm[:, 0:1]
+        my = base[:, 1:2] + k[None, :] * nrm[:, 1:2]
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if n_taps > 1:
         prof = prof.reshape(n, n_taps, -1).mean(axis=1)
@@ -82,25 +98,32 @@ def search_edges(
         g = prof[:, 2:] - prof[:, 1:-1]  # (N, 2R+1) at k + 1/2, k = -R..R
     else:
         g = prof[:, 2:] - prof[:, :-2]  # (N, 2R+1) at k = -R..R
-    pol = np.asarray(polarity, dtype=np.float32)
-    signed = np.where(pol[:, None] != 0.0, g * pol[:, None], np.abs(g))
-    sigma = float(prior_sigma_px) if prior_sigma_px is not None else max(float(R), 1.0)
-    kk = np.arange(-R, R + 1, dtype=np.float32)
-    prior = np.exp(-0.5 * (kk / sigma) ** 2)
+    pol = np.asarray(polarity, dtype=np.float32)[:, None]
+    has_pol = pol != 0.0
+    if has_pol.all():
+        signed = g * pol
+    elif not has_pol.any():
+        signed = np.abs(g)
+    else:
+        signed = np.where(has_pol, g * pol, np.abs(g))
     score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
     best = np.argmax(score, axis=1)
-    rows = np.arange(n)
-    found = (score[rows, best] > 0.0) & (best > 0) & (best < 2 * R)
-    b = np.clip(best, 1, 2 * R - 1) if R >= 1 else best
-    s_m, s_0, s_p = signed[rows, b - 1], signed[rows, b], signed[rows, b + 1]
+    width = 2 * R + 1
+    row0 = np.arange(n) * width  # flat index of each row's k = -R
+    found = (score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R)
+    b = np.minimum(np.maximum(best, 1), 2 * R - 1) if R >= 1 else best
+    i_b = row0 + b
+    flat = signed.ravel()
+    s_m, s_0, s_p = flat[i_b - 1], flat[i_b], flat[i_b + 1]
     den = s_m - 2.0 * s_0 + s_p
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(den < -1e-6, 0.5 * (s_m - s_p) / den, 0.0)
-    frac = np.clip(frac, -0.5, 0.5)
+    frac = np.minimum(np.maximum(frac, -0.5), 0.5)
     offset = (b - R).astype(np.float64) + frac + (0.5 if forward_difference else 0.0)
+    g_b = g.ravel()[i_b]
     return EdgeMeasurements(
         offset_px=offset,
         found=np.asarray(found),
-        sign=np.sign(g[rows, b]).astype(np.float64),
-        strength=np.abs(g[rows, b]).astype(np.float64),
+        sign=np.sign(g_b).astype(np.float64),
+        strength=np.abs(g_b).astype(np.float64),
     )

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.camera import PinholeCamera
+from companion.camera import _MIN_DEPTH_M, PinholeCamera
 from companion.checks import FloatArray
 from companion.vision.rack.model import PipeArrays
 
@@ -45,13 +45,16 @@ def limb_lines(o_rack: FloatArray, pipes: PipeArrays) -> LimbLines:
     a = np.einsum("mi,mi->m", o_rack[None, :] - c, v)  # axial coordinate of the camera centre
     p_axis = c + a[:, None] * v  # eq. 10: closest axis point to the camera
     to_axis = p_axis - o_rack[None, :]
-    l = np.linalg.norm(to_axis, axis=1)
+    l = np.sqrt(to_axis[:, 0] * to_axis[:, 0] + to_axis[:, 1] * to_axis[:, 1] + to_axis[:, 2] * to_axis[:, 2])
     valid = l > r * (1.0 + 1e-9)
     ls = np.where(valid, l, 1.0)
     u = to_axis / ls[:, None]  # eq. 11
-    beta = np.arcsin(np.clip(r / ls, 0.0, 1.0))
+    beta = np.arcsin(np.minimum(np.maximum(r / ls, 0.0), 1.0))
     delta = np.sqrt(np.maximum(ls * ls - r * r, 0.0))  # eq. 12
-    vxu = np.cross(v, u)
+    vxu = np.empty_like(u)  # v x u
+    vxu[:, 0] = v[:, 1] * u[:, 2] - v[:, 2] * u[:, 1]
+    vxu[:, 1] = v[:, 2] * u[:, 0] - v[:, 0] * u[:, 2]
+    vxu[:, 2] = v[:, 0] * u[:, 1] - v[:, 1] * u[:, 0]
     cb, sb = np.cos(beta), np.sin(beta)
     dir_l = cb[:, None] * u + sb[:, None] * vxu  # R(v, +β) u (u ⟂ v)
     dir_r = cb[:, None] * u - sb[:, None] * vxu  # R(v, -β) u
@@ -86,33 +89,22 @@ def clip_lines_to_view(
 
     Returns the clipped parameter interval (s0, s1); empty where s0 >= s1.
     """
-    X, Y, Z = A_cam[:, 0], A_cam[:, 1], A_cam[:, 2]
-    dX, dY, dZ = D_cam[:, 0], D_cam[:, 1], D_cam[:, 2]
     umax = camera.width - 1.0 - margin_px
     vmax = camera.height - 1.0 - margin_px
     m = margin_px
     fx, fy, sk, cx, cy = camera.fx, camera.fy, camera.skew, camera.cx, camera.cy
-    # Constraints a + b s >= 0.
-    a_c = np.stack(
-        [
-            Z - z_near_m,
-            fx * X + sk * Y + (cx - m) * Z,
-            -(fx * X + sk * Y + (cx - umax) * Z),
-            fy * Y + (cy - m) * Z,
-            -(fy * Y + (cy - vmax) * Z),
-        ],
-        axis=1,
-    )
-    b_c = np.stack(
-        [
-            dZ,
-            fx * dX + sk * dY + (cx - m) * dZ,
-            -(fx * dX + sk * dY + (cx - umax) * dZ),
-            fy * dY + (cy - m) * dZ,
-            -(fy * dY + (cy - vmax) * dZ),
-        ],
-        axis=1,
-    )
+    # Constraints a + b s >= 0: the same linear forms of the points A (rows :n) and directions D (rows n:).
+    n = A_cam.shape[0]
+    P = np.concatenate([A_cam, D_cam])
+    X, Y, Z = P[:, 0], P[:, 1], P[:, 2]
+    ab = np.empty((2 * n, 5))
+    ab[:, 0] = Z
+    ab[:n, 0] -= z_near_m
+    ab[:, 1] = fx * X + sk * Y + (cx - m) * Z
+    ab[:, 2] = -(fx * X + sk * Y + (cx - umax) * Z)
+    ab[:, 3] = fy * Y + (cy - m) * Z
+    ab[:, 4] = -(fy * Y + (cy - vmax) * Z)
+    a_c, b_c = ab[:n], ab[n:]
     with np.errstate(divide="ignore", invalid="ignore"):
         root = -a_c / b_c
     pos = b_c > 1e-12
@@ -150,12 +142,12 @@ def ray_cylinder_hits(
     hit = (disc > 0.0) & (A > 1e-12)
     sq = np.sqrt(np.where(hit, disc, 0.0))
     As = np.where(hit, A, 1.0)
-    t_out = np.full(A.shape, np.inf)
-    for sign in (-1.0, 1.0):
-        t = (-B + sign * sq) / As
+    # The near root (-B - sq) / A <= the far one: the far root only counts where the near one fails.
+    t_out: FloatArray = np.full(A.shape, np.inf)
+    for t in ((-B - sq) / As, (-B + sq) / As):
         s = wv[None, :] + t * dv
-        ok = hit & (t > 0.0) & (s >= 0.0) & (s <= L[None, :])
-        t_out = np.where(ok & (t < t_out), t, t_out)
+        ok = hit & (t > 0.0) & (s >= 0.0) & (s <= L[None, :]) & (t < t_out)
+        np.copyto(t_out, t, where=ok)
     return t_out
 
 
@@ -168,7 +160,7 @@ def occluded(
 ) -> BoolArray:
     """True where point p (N, 3) on pipe `own_pipe` (N,) is hidden from o by another pipe."""
     d = p_rack - o_rack[None, :]
-    dist = np.linalg.norm(d, axis=1)
+    dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
     d = d / np.maximum(dist, 1e-12)[:, None]
     t = ray_cylinder_hits(o_rack, d, pipes, margin_m)
     t[np.arange(p_rack.shape[0]), own_pipe] = np.inf
@@ -229,10 +221,11 @@ def sample_limbs(
     ua, ub = ua[long_enough], ub[long_enough]
     if idx.size == 0:
         return _empty_samples()
-    seg = np.stack([
-        np.stack([ua[:, 0] * camera.fx + ua[:, 1] * camera.skew + camera.cx, ua[:, 1] * camera.fy + camera.cy], 1),
-        np.stack([ub[:, 0] * camera.fx + ub[:, 1] * camera.skew + camera.cx, ub[:, 1] * camera.fy + camera.cy], 1),
-    ], axis=1)
+    seg = np.empty((idx.size, 2, 2))
+    seg[:, 0, 0] = ua[:, 0] * camera.fx + ua[:, 1] * camera.skew + camera.cx
+    seg[:, 0, 1] = ua[:, 1] * camera.fy + camera.cy
+    seg[:, 1, 0] = ub[:, 0] * camera.fx + ub[:, 1] * camera.skew + camera.cx
+    seg[:, 1, 1] = ub[:, 1] * camera.fy + camera.cy
     K = int(samples_per_limb)
     t = (np.arange(K) + 0.5) / K  # image-uniform parameters
     Za, Zb = Pa[:, 2:3], Pb[:, 2:3]
@@ -245,18 +238,59 @@ def sample_limbs(
     # Occlusion by other pipes, with a margin of a few pixels at the sample's depth.
     margin_m = occlusion_margin_px * p_cam[:, 2] / camera.fx
     vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
-    uv, J = camera.project_with_jacobian(p_cam)
-    vis &= camera.in_image(uv, margin_px)
-    p_cam, p_rack, uv, J, limb, pipe = p_cam[vis], p_rack[vis], uv[vis], J[vis], limb[vis], pipe[vis]
+    uv, J = project_with_jacobian(camera, p_cam)
+    lo = -0.5 + margin_px
+    with np.errstate(invalid="ignore"):
+        vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
+            uv[:, 1] <= camera.height - 0.5 - margin_px)
+    if not vis.all():
+        ii = np.flatnonzero(vis)
+        p_cam, p_rack, uv, J, limb, pipe = p_cam[ii], p_rack[ii], uv[ii], J[ii], limb[ii], pipe[ii]
     # Image tangent (direction of the pipe axis) and outward normal through the Jacobian.
-    t_img = np.einsum("nij,nj->ni", J, lines.direction[limb] @ R_rc)
-    m_img = np.einsum("nij,nj->ni", J, lines.outward[limb] @ R_rc)
-    t_img /= np.maximum(np.linalg.norm(t_img, axis=1, keepdims=True), 1e-12)
-    n_img = np.stack([-t_img[:, 1], t_img[:, 0]], axis=1)
-    flip = np.einsum("ni,ni->n", n_img, m_img) < 0.0
-    n_img[flip] *= -1.0
+    t_img = np.einsum("nij,nj->ni", J, D_cam[limb])
+    m_img = np.einsum("nij,nj->ni", J, (lines.outward @ R_rc)[limb])
+    t_img /= np.maximum(np.sqrt(t_img[:, 0:1] * t_img[:, 0:1] + t_img[:, 1:2] * t_img[:, 1:2]), 1e-12)
+    n_img = np.empty_like(t_img)
+    n_img[:, 0] = -t_img[:, 1]
+    n_img[:, 1] = t_img[:, 0]
+    flip = n_img[:, 0] * m_img[:, 0] + n_img[:, 1] * m_img[:, 1] < 0.0
+    n_img[flip] = -n_img[flip]
     return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
                        segments_uv=seg, segment_limb=idx)
+
+
+def project_with_jacobian(camera: PinholeCamera, p_cam: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """`camera.project_with_jacobian` for (N, 3) points, without its input checks when undistorted.
+
+    The pinhole branch repeats the camera's arithmetic operation for operation (same results);
+    distorted cameras go through the camera itself.
+    """
+    if camera.dist is not None:
+        return camera.project_with_jacobian(p_cam)
+    z = p_cam[:, 2]
+    front = z > _MIN_DEPTH_M
+    all_front = bool(front.all())
+    zs = z if all_front else np.where(front, z, 1.0)
+    x0 = p_cam[:, 0] / zs
+    x1 = p_cam[:, 1] / zs
+    fx, fy, sk = camera.fx, camera.fy, camera.skew
+    uv = np.empty((p_cam.shape[0], 2))
+    uv[:, 0] = fx * x0 + sk * x1 + camera.cx
+    uv[:, 1] = fy * x1 + camera.cy
+    inv_z = 1.0 / zs
+    j02 = -x0 / zs
+    j12 = -x1 / zs
+    J = np.empty((p_cam.shape[0], 2, 3))
+    J[:, 0, 0] = fx * inv_z
+    J[:, 0, 1] = sk * inv_z
+    J[:, 0, 2] = fx * j02 + sk * j12
+    J[:, 1, 0] = 0.0
+    J[:, 1, 1] = fy * inv_z
+    J[:, 1, 2] = fy * j12
+    if not all_front:
+        uv[~front] = np.nan
+        J[~front] = np.nan
+    return uv, J
 
 
 def _empty_samples() -> LimbSamples:

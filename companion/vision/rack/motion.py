@@ -12,6 +12,7 @@ rack +x axis (eq. 23-26): d p_cam / d d̄_k = R_cam_rack e_x.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -19,23 +20,71 @@ import numpy as np
 from companion.checks import FloatArray
 from companion.errors import InputError
 
+_SMALL_RAD = 1e-3  # the series threshold of companion.geometry.so3
+
+
+def exp_twist(xi: FloatArray) -> FloatArray:
+    """`se3.exp` (4, 4) of ONE twist (6,) = (v (m), w (rad)), without batching and input checks.
+
+    Same formulas and thresholds as `companion.geometry.se3.exp` / `so3.exp` (R = exp(w),
+    t = J_l(w) v with the sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 coefficients and their
+    series below 1e-3 rad), for the tracker's per-iteration updates where the generic batched
+    path's checks dominate; agrees with it to rounding (tested).
+    """
+    w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    theta = math.sqrt(t2)
+    if theta < _SMALL_RAD:
+        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+    else:
+        s = math.sin(theta)
+        A = s / theta
+        B = 2.0 * math.sin(0.5 * theta) ** 2 / (theta * theta)
+        C = (theta - s) / (theta * theta * theta)
+    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
+    WW = W @ W
+    T = np.zeros((4, 4))
+    T[:3, :3] = A * W + B * WW
+    T[0, 0] += 1.0
+    T[1, 1] += 1.0
+    T[2, 2] += 1.0
+    J_l = B * W + C * WW
+    J_l[0, 0] += 1.0
+    J_l[1, 1] += 1.0
+    J_l[2, 2] += 1.0
+    T[:3, 3] = J_l @ np.asarray(xi[:3], dtype=np.float64)
+    T[3, 3] = 1.0
+    return T
+
 
 def pose_jacobian(J_uv_pcam: FloatArray, p_cam: FloatArray) -> FloatArray:
     """Image motion fields (N, 2, 6) of the six generators (right perturbation, cam frame)."""
-    n = p_cam.shape[0]
-    D = np.zeros((n, 3, 6))
-    D[:, 0, 0] = D[:, 1, 1] = D[:, 2, 2] = -1.0
-    x, y, z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
-    # hat(p) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]
-    D[:, 0, 4], D[:, 0, 5] = -z, y
-    D[:, 1, 3], D[:, 1, 5] = z, -x
-    D[:, 2, 3], D[:, 2, 4] = -y, x
-    return np.asarray(np.einsum("nij,njk->nik", J_uv_pcam, D))
+    x, y, z = p_cam[:, None, 0], p_cam[:, None, 1], p_cam[:, None, 2]
+    J0, J1, J2 = J_uv_pcam[:, :, 0], J_uv_pcam[:, :, 1], J_uv_pcam[:, :, 2]
+    # J @ [-I, hat(p)] with hat(p) = [[0, -z, y], [z, 0, -x], [-y, x, 0]], column by column.
+    out = np.empty((p_cam.shape[0], 2, 6))
+    out[:, :, :3] = -J_uv_pcam
+    out[:, :, 3] = J1 * z - J2 * y
+    out[:, :, 4] = J2 * x - J0 * z
+    out[:, :, 5] = J0 * y - J1 * x
+    return out
 
 
 def gap_jacobian(J_uv_pcam: FloatArray, R_cam_rack: FloatArray) -> FloatArray:
     """Image motion (N, 2) of a point when its pipe shifts along rack +x (per metre)."""
     return np.asarray(np.einsum("nij,j->ni", J_uv_pcam, R_cam_rack[:, 0]))
+
+
+def median_1d(a: FloatArray) -> float:
+    """`np.median` of a non-empty 1-D float array (the same value, NaN if any) with one partition."""
+    n = a.size
+    h = n // 2
+    p = np.partition(a, (h - 1, h, n - 1) if n % 2 == 0 else (h, n - 1))
+    if np.isnan(p[-1]):
+        return float("nan")
+    return float(p[h]) if n % 2 else float((p[h - 1] + p[h]) / 2.0)
 
 
 def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None = None) -> FloatArray:

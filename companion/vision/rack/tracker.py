@@ -23,11 +23,13 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
 from companion.vision.rack.edges import search_edges
-from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
+from companion.vision.rack.limbs import LimbSamples, occluded, project_with_jacobian, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
+    exp_twist,
     gap_jacobian,
     information_condition,
+    median_1d,
     pose_jacobian,
     robust_weights,
     solve_normal_equations,
@@ -198,6 +200,9 @@ class RackTracker:
         self._frames = 0
         self._initialized = False
         self._since_detect = 0
+        self._pipes_key: bytes | None = None
+        self._pipes_cached: PipeArrays | None = None
+        self._weights_cache: dict[bool, tuple[FloatArray, FloatArray]] = {}
 
     # ------------------------------------------------------------------ public API
     def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
@@ -246,10 +251,10 @@ class RackTracker:
         if cfg.velocity_prediction and self._last_stamp is not None:
             dt = float(stamp_s) - self._last_stamp
             if 0.0 < dt <= 0.5:
-                T = T @ se3.exp(self._velocity * dt)
+                T = T @ exp_twist(self._velocity * dt)
         T_pred = T.copy()
         gaps = self._gaps.copy()
-        pipes = self.model.pipe_arrays(gaps)
+        pipes = self._pipe_arrays(gaps)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
         tex_uv = np.zeros((0, 2))
         tex_ok = np.zeros(0, dtype=bool)
@@ -363,6 +368,41 @@ class RackTracker:
         )
 
     # ------------------------------------------------------------------ internals
+    def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
+        """`model.pipe_arrays(gaps)`, cached for the last gaps (read-only arrays, shared)."""
+        key = np.asarray(gaps, dtype=np.float64).tobytes()
+        if key != self._pipes_key or self._pipes_cached is None:
+            pipes = self.model.pipe_arrays(gaps)
+            for a in (pipes.starts, pipes.directions, pipes.radii, pipes.lengths, pipes.gap_index):
+                a.flags.writeable = False
+            self._pipes_key, self._pipes_cached = key, pipes
+        return self._pipes_cached
+
+    def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
+        """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
+        cached = self._weights_cache.get(first)
+        if cached is not None:
+            return cached
+        cfg = self.config
+        prior = np.empty(n_par)
+        prior[:3] = 1.0 / cfg.prior_translation_m**2
+        prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
+        prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
+        prior[i_bias:] = 1.0
+        anchor_info = np.zeros(n_par)
+        if first:
+            anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
+            anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
+            anchor_info[i_bias:] = 1.0 / 0.3**2
+        else:
+            anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
+            anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
+            anchor_info[i_bias:] = 1.0 / cfg.edge_bias_rate_px**2
+        prior.flags.writeable = False
+        anchor_info.flags.writeable = False
+        self._weights_cache[first] = (prior, anchor_info)
+        return prior, anchor_info
+
     def _solve(
         self,
         T: FloatArray,
@@ -380,21 +420,10 @@ class RackTracker:
         n_gap = self._n_gaps if cfg.estimate_gaps else 0
         i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
         n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
-        prior = np.empty(n_par)
-        prior[:3] = 1.0 / cfg.prior_translation_m**2
-        prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
-        prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
-        prior[i_bias:] = 1.0
-        pipes = self.model.pipe_arrays(gaps)
-        anchor_info = np.zeros(n_par)
-        if first:
-            anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
-            anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / 0.3**2
-        else:
-            anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
-            anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / cfg.edge_bias_rate_px**2
+        prior, anchor_info = self._solver_weights(first, n_par, i_bias)
+        pipes = self._pipe_arrays(gaps)
+        # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
+        tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
         bias = self._edge_bias.copy()
         moved = np.zeros(n_par)  # sum of this frame's increments (first order: the offset from the anchor)
         last: dict[str, Any] = {}
@@ -404,7 +433,7 @@ class RackTracker:
             # The first search covers init_search_range_m at the pipes' depth (capped in pixels).
             s0 = sample_limbs(T, cam, pipes, 4, cfg.margin_px, 12.0, 0.1, 0.0)
             if s0.p_cam.shape[0]:
-                depth = float(np.median(s0.p_cam[:, 2]))
+                depth = median_1d(s0.p_cam[:, 2])
                 init_px = min(cam.fx * cfg.init_search_range_m / depth, float(cfg.init_search_range_px))
         for it in range(n_iter):
             it_done = it + 1
@@ -427,7 +456,7 @@ class RackTracker:
                 side = samples.limb[f] % 2
                 A_e[np.arange(side.size), i_bias + side] = 1.0
                 r_e = r_e - bias[side]
-            A_t, r_t = self._texture_rows(T, pipes, tex_uv, n_par)
+            A_t, r_t = self._texture_rows(T, pipes, tex_rack, tex_uv, n_par)
             A = np.vstack([A_e, A_t])
             r = np.concatenate([r_e, r_t])
             gate = None
@@ -437,10 +466,12 @@ class RackTracker:
             w[r_e.size :] *= cfg.texture_weight
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
-            T = T @ se3.exp(x[:6])
+            T = T @ exp_twist(x[:6])
             if n_gap:
                 gaps = gaps + x[6:i_bias]
-                pipes = self.model.pipe_arrays(gaps)
+                pipes = self._pipe_arrays(gaps)
+                if tex_uv.shape[0]:
+                    tex_rack = self._texture.points_rack(pipes)
             if cfg.estimate_edge_bias:
                 bias = bias + x[i_bias:]
             last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
@@ -448,7 +479,7 @@ class RackTracker:
             small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
                          and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
             # Also stop when the update moves the rendered edges by less than stop_px (median).
-            small = small or bool(r_e.size > 0 and float(np.median(np.abs(A_e @ x))) < cfg.stop_px)
+            small = small or bool(r_e.size > 0 and median_1d(np.abs(A_e @ x)) < cfg.stop_px)
             small = small and it + 1 >= cfg.min_iterations
             if small and (not first or rng_px <= cfg.search_range_px):
                 break
@@ -459,7 +490,7 @@ class RackTracker:
         last.update(
             T=T, gaps=gaps, pipes=pipes, bias=bias, iterations=it_done, r_post=r_post, agree=agree,
             n_agree=int(agree.sum()),
-            residual_px=float(1.4826 * np.median(np.abs(r_post[:n_edge]))) if n_edge else float("inf"),
+            residual_px=1.4826 * median_1d(np.abs(r_post[:n_edge])) if n_edge else float("inf"),
         )
         return last
 
@@ -487,21 +518,20 @@ class RackTracker:
         A = np.zeros((int(f.sum()), n_par))
         A[:, :6] = np.einsum("nij,ni->nj", J6, nrm)  # σ = ξᵀ n (eq. 15)
         if self.config.estimate_gaps and self._n_gaps:
-            gi = self.model.pipe_arrays(gaps).gap_index[samples.pipe[f]]
+            gi = self._pipe_arrays(gaps).gap_index[samples.pipe[f]]
             has = gi >= 0
             Jg = gap_jacobian(samples.J_uv_pcam[f][has], T[:3, :3].T)
             A[np.flatnonzero(has), 6 + gi[has]] = np.einsum("ni,ni->n", Jg, nrm[has])
         return A, offset[f], f
 
     def _texture_rows(
-        self, T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray, n_par: int
+        self, T: FloatArray, pipes: PipeArrays, p_rack: FloatArray, tex_uv: FloatArray, n_par: int
     ) -> tuple[FloatArray, FloatArray]:
         k = tex_uv.shape[0]
         if k == 0:
             return np.zeros((0, n_par)), np.zeros(0)
-        p_rack = self._texture.points_rack(pipes)
         p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
-        uv, J = self.camera.project_with_jacobian(p_cam)
+        uv, J = project_with_jacobian(self.camera, p_cam)
         A = np.zeros((2 * k, n_par))
         A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
         if self.config.estimate_gaps and self._n_gaps:
