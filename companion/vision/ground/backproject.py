@@ -55,19 +55,36 @@ def ground_rays_level(
     centre's horizontal offset from the body origin in L (2,), metres; and the mask of rays that
     hit the ground in front of the camera (NaN rays elsewhere). The ground point at camera height h
     is offset + h * ray[:2] (`ground_points_level`)."""
+    R_L_cam, offset = level_camera(roll_rad, pitch_rad, T_body_cam)
+    rays_L, valid = rays_to_level(rays_cam, R_L_cam)
+    return rays_L, offset, valid
+
+
+def level_camera(roll_rad: float, pitch_rad: float, T_body_cam: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """R_L_cam (3, 3), camera to level frame, and the camera centre's horizontal offset from the
+    body origin in L (2,), metres: the per-frame part of `ground_rays_level` (compute once per frame)."""
     R_L_body = level_from_body(roll_rad, pitch_rad)
-    R_L_cam = R_L_body @ T_body_cam[:3, :3]
+    R_L_cam: FloatArray = R_L_body @ T_body_cam[:3, :3]
+    offset: FloatArray = (R_L_body @ T_body_cam[:3, 3])[:2]
+    return R_L_cam, offset
+
+
+def rays_to_level(rays_cam: FloatArray, R_L_cam: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """Camera rays (N, 3) -> level-frame rays at unit depth (N, 3) and the ground-hit mask, for the
+    rotation of `level_camera` (`ground_rays_level` without the per-frame part)."""
     r_L = rays_cam @ R_L_cam.T
     norm = np.sqrt(np.einsum("ij,ij->i", r_L, r_L))
     valid: BoolArray = r_L[:, 2] > MIN_RAY_DOWN_COS * norm
     scale = np.where(valid, 1.0 / np.where(valid, r_L[:, 2], 1.0), np.nan)
     rays_L: FloatArray = r_L * scale[:, None]
-    offset: FloatArray = (R_L_body @ T_body_cam[:3, 3])[:2]
-    return rays_L, offset, valid
+    return rays_L, valid
 
 
 def rays_from_pixels(fx: float, fy: float, cx: float, cy: float, skew: float, uv_px: FloatArray) -> FloatArray:
     """Rays (N, 3) (x/z, y/z, 1) of pixels for a camera without distortion (fast path)."""
+    out = np.empty((uv_px.shape[0], 3))
     y = (uv_px[:, 1] - cy) / fy
-    x = (uv_px[:, 0] - cx - skew * y) / fx
-    return np.stack([x, y, np.ones_like(x)], axis=-1)
+    out[:, 0] = (uv_px[:, 0] - cx - skew * y) / fx
+    out[:, 1] = y
+    out[:, 2] = 1.0
+    return out

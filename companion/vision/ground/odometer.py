@@ -21,7 +21,7 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import InputError
 from companion.geometry import frames
 from companion.vision.ground import kalman, tilt_bias
-from companion.vision.ground.backproject import ground_rays_level, rays_from_pixels
+from companion.vision.ground.backproject import level_camera, rays_from_pixels, rays_to_level
 from companion.vision.ground.closed_form import gen_to_increment, solve_gen, solve_sma
 from companion.vision.ground.config import GroundOdometerConfig
 from companion.vision.ground.features import FeatureExtractor, Features
@@ -86,6 +86,7 @@ class _Frame:
     roll_rad: float
     pitch_rad: float
     rays_level: FloatArray  # (N, 3) the features' rays in the level frame at unit depth
+    R_L_cam: FloatArray  # (3, 3) camera to level frame at this frame's roll/pitch
 
 
 @dataclass(frozen=True)
@@ -134,6 +135,10 @@ class GroundOdometer:
         self._jerk_psd = np.array(
             [self.config.kalman_accel_psd, self.config.kalman_accel_psd, self.config.kalman_yaw_accel_psd]
         )
+        cfg = self.config
+        self._min_measurement_var = (
+            np.array([cfg.min_measurement_std_m, cfg.min_measurement_std_m, cfg.min_measurement_std_rad]) ** 2
+        )
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -147,6 +152,8 @@ class GroundOdometer:
         self._prev: _Anchor | None = None  # last good frame
         self._prev_rel_cov = np.zeros((3, 3))
         self._kf: kalman.KalmanState | None = None
+        # The filter's prediction to a frame's stamp, computed once per frame (speed gate and update).
+        self._kf_pred: tuple[kalman.KalmanState, float, kalman.KalmanState] | None = None
         self._tilt: tilt_bias.TiltState | None = None  # slow tilt bias + white errors of the last good frame
         self._pending_tilt: tilt_bias.TiltState | None = None
         self._last_stamp_s: float | None = None
@@ -237,12 +244,8 @@ class GroundOdometer:
         dt = stamp - prev.frame.stamp_s
         if cfg.kalman:
             assert self._kf is not None
-            var = np.maximum(
-                np.diag(covariance),
-                np.array([cfg.min_measurement_std_m, cfg.min_measurement_std_m, cfg.min_measurement_std_rad]) ** 2,
-            )
-            kf = kalman.predict(self._kf, stamp, self._jerk_psd)
-            kf = kalman.update(kf, increment, var, dt)
+            var = np.maximum(np.diag(covariance), self._min_measurement_var)
+            kf = kalman.update(self._predicted(self._kf, stamp), increment, var, dt)
             self._kf = kf
             increment, inc_var = kalman.increment_of(kf, dt)
             covariance = np.diag(inc_var)
@@ -270,22 +273,39 @@ class GroundOdometer:
         self._prev = current
         return self._estimate(True, increment, covariance, num_matches, num_inliers, stamp, dt, result.rms_m)
 
+    def _predicted(self, kf: kalman.KalmanState, stamp: float) -> kalman.KalmanState:
+        """`kalman.predict(kf, stamp)`, cached for the last (state, stamp) pair."""
+        cached = self._kf_pred
+        if cached is not None and cached[0] is kf and cached[1] == stamp:
+            return cached[2]
+        pred = kalman.predict(kf, stamp, self._jerk_psd)
+        self._kf_pred = (kf, stamp, pred)
+        return pred
+
     def _relative(self, ref: _Anchor, cur: _Frame) -> tuple[RefineResult | None, int, int]:
         """Motion from `ref` to `cur` (NED-aligned with the ref's raw yaw), match and inlier counts."""
         i_prev, i_cur = self._matcher.match(ref.frame.features, cur.features)
-        q_a = ref.frame.q_level_m[i_prev]
         valid = ref.frame.valid[i_prev] & cur.valid[i_cur]
         if self.config.subpixel and i_prev.size > 0:
             q_b, valid_b, rays_b = self._subpixel(ref.frame, cur, i_prev, i_cur)
             valid &= valid_b
+            q_b, rays_b = q_b[valid], rays_b[valid]
         else:
-            q_b = cur.q_level_m[i_cur]
-            rays_b = cur.rays_level[i_cur]
-        rays_a = ref.frame.rays_level[i_prev]
+            i_cur_valid = i_cur[valid]
+            q_b = cur.q_level_m[i_cur_valid]
+            rays_b = cur.rays_level[i_cur_valid]
+        i_prev_valid = i_prev[valid]
         dt = cur.stamp_s - ref.frame.stamp_s
         self._pending_tilt = None
         result, num_inliers = self._solve(
-            ref.frame, cur, q_a[valid], q_b[valid], rays_a[valid], rays_b[valid], dt, ref.pose[2]
+            ref.frame,
+            cur,
+            ref.frame.q_level_m[i_prev_valid],
+            q_b,
+            ref.frame.rays_level[i_prev_valid],
+            rays_b,
+            dt,
+            ref.pose[2],
         )
         if num_inliers < self.config.min_inliers:
             result = None
@@ -320,8 +340,8 @@ class GroundOdometer:
         moved = np.abs(uv - uv0.reshape(-1, 2)).max(axis=1)
         good = (status.ravel() == 1) & (moved < _LK_MAX_CORRECTION_PX)
         uv = np.where(good[:, None], uv, uv0.reshape(-1, 2))
-        rays_L, offset, valid = ground_rays_level(self._rays(uv), cur.roll_rad, cur.pitch_rad, self.T_body_cam)
-        return rays_L[:, :2] * cur.height_m + offset, valid, rays_L
+        rays_L, valid = rays_to_level(self._rays(uv), cur.R_L_cam)
+        return rays_L[:, :2] * cur.height_m + cur.nadir_level_m, valid, rays_L
 
     # ------------------------------------------------------------------ stages
     def _rays(self, uv: FloatArray) -> FloatArray:
@@ -336,9 +356,10 @@ class GroundOdometer:
     def _backproject(
         self, gray: np.ndarray[Any, Any], feats: Features, stamp: float, h: float, roll: float, pitch: float
     ) -> _Frame:
-        rays_L, nadir, valid = ground_rays_level(self._rays(feats.uv_px), roll, pitch, self.T_body_cam)
+        R_L_cam, nadir = level_camera(roll, pitch, self.T_body_cam)
+        rays_L, valid = rays_to_level(self._rays(feats.uv_px), R_L_cam)
         q = rays_L[:, :2] * h + nadir
-        return _Frame(feats, q, valid, stamp, h, nadir, gray, roll, pitch, rays_L)
+        return _Frame(feats, q, valid, stamp, h, nadir, gray, roll, pitch, rays_L, R_L_cam)
 
     def _solve(
         self,
@@ -363,11 +384,12 @@ class GroundOdometer:
         # Speed gate, centred on the Kalman prediction when the filter is running.
         pred = np.zeros(3)
         if cfg.kalman and self._kf is not None and self._kf.P[0, 0, 0] < 1.0:
-            pred = kalman.predict(self._kf, cur.stamp_s, self._jerk_psd).x @ np.array([dt, -0.5 * dt * dt])
+            pred = self._predicted(self._kf, cur.stamp_s).x @ np.array([dt, -0.5 * dt * dt])
         gate = speed_gate(
             a, b, pred[:2], float(pred[2]), cfg.max_speed_m_s * dt + cfg.gate_margin_m, cfg.max_yaw_rate_rad_s * dt
         )
-        a, b, q_a, q_b, rays_a, rays_b = a[gate], b[gate], q_a[gate], q_b[gate], rays_a[gate], rays_b[gate]
+        i_gated = np.flatnonzero(gate)
+        a, b = a[i_gated], b[i_gated]
         n_gated = a.shape[0]
         if n_gated < cfg.min_inliers:
             return None, n_gated
@@ -382,16 +404,20 @@ class GroundOdometer:
             inl = mad_trim(a, b, threshold_m)
         else:
             inl = np.ones(n_gated, dtype=bool)
-        if inl.sum() < cfg.min_inliers or inl.sum() < cfg.min_inlier_ratio * n_gated:
-            return None, int(inl.sum())
+        n_inl = int(np.count_nonzero(inl))
+        if n_inl < cfg.min_inliers or n_inl < cfg.min_inlier_ratio * n_gated:
+            return None, n_inl
 
         if cfg.robust != "none":
             # Re-select inliers around the least-squares motion of the consensus set (GEN, cheap).
             inl = residual_norms(a, b, gen_to_increment(solve_gen(a[inl], b[inl]))) <= threshold_m
-            if inl.sum() < cfg.min_inliers or inl.sum() < cfg.min_inlier_ratio * n_gated:
-                return None, int(inl.sum())
-        result = self._fit(a[inl], b[inl], q_a[inl], q_b[inl], rays_a[inl], rays_b[inl], R, ref, cur)
-        return self._with_input_noise(result, a[inl], b[inl], ref.height_m, cur.height_m), int(inl.sum())
+            n_inl = int(np.count_nonzero(inl))
+            if n_inl < cfg.min_inliers or n_inl < cfg.min_inlier_ratio * n_gated:
+                return None, n_inl
+        i_inl = np.flatnonzero(inl)
+        a, b, i_src = a[i_inl], b[i_inl], i_gated[i_inl]
+        result = self._fit(a, b, q_a[i_src], q_b[i_src], rays_a[i_src], rays_b[i_src], R, ref, cur)
+        return self._with_input_noise(result, a, b, ref.height_m, cur.height_m), int(i_inl.size)
 
     def _with_input_noise(
         self, result: RefineResult, a: FloatArray, b: FloatArray, h0: float, h1: float
@@ -404,7 +430,8 @@ class GroundOdometer:
         """
         cfg = self.config
         att_var = (cfg.attitude_std_rad * h0) ** 2 + (cfg.attitude_std_rad * h1) ** 2
-        ca, cb = a.mean(axis=0), b.mean(axis=0)
+        # Means as sum / n (what ndarray.mean computes, without its Python overhead).
+        ca, cb = a.sum(axis=0) / a.shape[0], b.sum(axis=0) / b.shape[0]
         h_var = (cfg.height_std_m / h0) ** 2 * float(ca @ ca) + (cfg.height_std_m / h1) ** 2 * float(cb @ cb)
         cov = result.covariance.copy()
         cov[0, 0] += att_var + h_var

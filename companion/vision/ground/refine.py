@@ -444,11 +444,21 @@ def _rotation_xy_rows(wx: float, wy: float) -> list[list[float]]:
 def _corrected_stack(rays_level: FloatArray, heights_m: FloatArray, nadirs_m: FloatArray, e: FloatArray) -> FloatArray:
     """`tilt_corrected_points` of F frames at once, without the Jacobian (hot path): rays (F, N, 3),
     heights (F,), nadirs (F, 2), e (F, 3) -> points (F, N, 2)."""
-    R = np.array([_rotation_xy_rows(-float(ef[0]), float(ef[1])) for ef in e])  # (F, 3, 3)
+    # The per-frame scalars with Python floats (the same IEEE operations as the array expressions
+    # H = h (1 + s), offset = nadir - (H / R_22) R_:2,2).
+    rows = []
+    heights = []
+    offsets = []
+    for ef, h, nad in zip(e.tolist(), heights_m.tolist(), nadirs_m.tolist(), strict=True):
+        Rf = _rotation_xy_rows(-ef[0], ef[1])
+        Hf = h * (1.0 + ef[2])
+        k = Hf / Rf[2][2]
+        rows.append(Rf)
+        heights.append([[Hf]])
+        offsets.append([[nad[0] - k * Rf[0][2], nad[1] - k * Rf[1][2]]])
+    R = np.array(rows)  # (F, 3, 3)
     p = rays_level @ np.transpose(R, (0, 2, 1))
-    H = heights_m * (1.0 + e[:, 2])
-    offset = nadirs_m - (H / R[:, 2, 2])[:, None] * R[:, :2, 2]
-    out: FloatArray = p[:, :, :2] * (H[:, None, None] / p[:, :, 2:3]) + offset[:, None, :]
+    out: FloatArray = p[:, :, :2] * (np.array(heights) / p[:, :, 2:3]) + np.array(offsets)
     return out
 
 
@@ -488,20 +498,21 @@ def _instrument_system(
     mid_a = 0.5 * (Pa + RPb) + 0.5 * d
     mid_b = (mid_a - d) @ rot_rows.T  # R^T (m - d)
 
-    def fields(m: FloatArray, nadir: FloatArray, height: float, scale: float) -> FloatArray:
-        x = m[:, 0] - nadir[0]
-        y = m[:, 1] - nadir[1]
-        inv_h = 1.0 / (height * scale)
-        F = np.empty((n, 2, 3))
-        F[:, 0, 0] = F[:, 1, 1] = x * y * inv_h
-        F[:, 1, 0] = y * y * inv_h
-        F[:, 0, 1] = x * x * inv_h
-        F[:, 0, 2] = x / scale
-        F[:, 1, 2] = y / scale
-        return F
-
-    Fa = fields(mid_a, nadir_a_m, height_a_m, 1.0 + float(ea[2]))
-    Fb = fields(mid_b, nadir_b_m, height_b_m, 1.0 + float(eb[2]))
+    # First-order warp fields (`tilt_fields`, per point (2, 3)) of both frames at once: (2, N, 2, 3).
+    mids = np.stack([mid_a, mid_b])
+    nads = np.array([[nadir_a_m[0], nadir_a_m[1]], [nadir_b_m[0], nadir_b_m[1]]])
+    scale = [1.0 + float(ea[2]), 1.0 + float(eb[2])]
+    inv_h = np.array([[1.0 / (height_a_m * scale[0])], [1.0 / (height_b_m * scale[1])]])
+    scale_col = np.array([[scale[0]], [scale[1]]])
+    x = mids[:, :, 0] - nads[:, 0:1]
+    y = mids[:, :, 1] - nads[:, 1:2]
+    F = np.empty((2, n, 2, 3))
+    F[:, :, 0, 0] = F[:, :, 1, 1] = x * y * inv_h
+    F[:, :, 1, 0] = y * y * inv_h
+    F[:, :, 0, 1] = x * x * inv_h
+    F[:, :, 0, 2] = x / scale_col
+    F[:, :, 1, 2] = y / scale_col
+    Fa, Fb = F[0], F[1]
     Fb_rot = np.empty_like(Fb)
     Fb_rot[:, 0] = c * Fb[:, 0] - s * Fb[:, 1]
     Fb_rot[:, 1] = s * Fb[:, 0] + c * Fb[:, 1]
@@ -513,6 +524,21 @@ def _instrument_system(
     Jf = J.reshape(2 * n, 3 + z.size)
     Jf[:, 3:] = Fb_rot.reshape(2 * n, 3) @ map_b - Fa.reshape(2 * n, 3) @ map_a
     return Jf
+
+
+_MAP_CACHE: list[tuple[FloatArray, FloatArray, FloatArray]] = []
+
+
+def _stacked_maps(map_a: FloatArray, map_b: FloatArray) -> FloatArray:
+    """np.stack([map_a, map_b]) (2, 3, m); cached for the last pair when both are read-only arrays
+    (the constant maps of `tilt_bias`), so a caller mutating its maps never sees a stale stack."""
+    if _MAP_CACHE and _MAP_CACHE[0][0] is map_a and _MAP_CACHE[0][1] is map_b:
+        return _MAP_CACHE[0][2]
+    out = np.stack([map_a, map_b])
+    if not np.asarray(map_a).flags.writeable and not np.asarray(map_b).flags.writeable:
+        out.flags.writeable = False
+        _MAP_CACHE[:] = [(map_a, map_b, out)]
+    return out
 
 
 def refine_tilt_exact(
@@ -556,7 +582,7 @@ def refine_tilt_exact(
     rays_ab = np.stack([rays_a, rays_b])
     heights = np.array([height_a_m, height_b_m])
     nadirs = np.stack([nadir_a_m, nadir_b_m])
-    map_ab = np.stack([map_a, map_b])  # (2, 3, m)
+    map_ab = _stacked_maps(map_a, map_b)  # (2, 3, m)
     points = np.zeros((2, n, 2))
 
     def residual(p: FloatArray) -> FloatArray:

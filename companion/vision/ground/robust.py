@@ -12,7 +12,6 @@ import numpy as np
 from companion.checks import FloatArray
 from companion.vision.ground.closed_form import gen_to_increment, solve_gen
 from companion.vision.ground.matching import BoolArray
-from companion.vision.ground.refine import residuals_and_jacobian
 
 # 1.4826 * MAD estimates the standard deviation of Gaussian residuals.
 _MAD_TO_SIGMA = 1.4826
@@ -20,7 +19,10 @@ _MAD_TO_SIGMA = 1.4826
 
 def residual_norms(a_m: FloatArray, b_m: FloatArray, increment: FloatArray) -> FloatArray:
     """|d + R(dyaw) b_i - a_i| (N,), metres."""
-    r, _ = residuals_and_jacobian(increment, a_m, b_m)
+    # The residuals of `residuals_and_jacobian`, without building the Jacobian.
+    c, s = np.cos(increment[2]), np.sin(increment[2])
+    bx, by = b_m[:, 0], b_m[:, 1]
+    r = np.stack([increment[0] + (c * bx - s * by) - a_m[:, 0], increment[1] + (s * bx + c * by) - a_m[:, 1]], axis=-1)
     out: FloatArray = np.sqrt(np.einsum("ij,ij->i", r, r))
     return out
 
@@ -48,17 +50,30 @@ def ransac_rigid(
     ma = 0.5 * (a_m[i] + a_m[j])
     dx = ma[:, 0] - (c * mb[:, 0] - s * mb[:, 1])
     dy = ma[:, 1] - (s * mb[:, 0] + c * mb[:, 1])
-    # Residuals of every point under every hypothesis: (H, N).
+    # Residuals of every point under every hypothesis: (H, N), evaluated in place (two (H, N)
+    # buffers) with the same operations and order as dx + c bx - s by - ax, dy + s bx + c by - ay.
     bx, by = b_m[:, 0][None, :], b_m[:, 1][None, :]
-    rx = dx[:, None] + c[:, None] * bx - s[:, None] * by - a_m[:, 0][None, :]
-    ry = dy[:, None] + s[:, None] * bx + c[:, None] * by - a_m[:, 1][None, :]
-    r2 = rx * rx + ry * ry
+    c_, s_ = c[:, None], s[:, None]
+    rx = np.multiply(c_, bx)
+    rx += dx[:, None]
+    tmp = np.multiply(s_, by)
+    rx -= tmp
+    rx -= a_m[:, 0][None, :]
+    ry = np.multiply(s_, bx)
+    ry += dy[:, None]
+    np.multiply(c_, by, out=tmp)
+    ry += tmp
+    ry -= a_m[:, 1][None, :]
+    rx *= rx
+    ry *= ry
+    r2 = rx
+    r2 += ry
     t2 = threshold_m * threshold_m
     inl = r2 <= t2
-    counts = inl.sum(axis=1).astype(np.float64)
+    counts = np.count_nonzero(inl, axis=1).astype(np.float64)
     degenerate = np.hypot(vb[:, 0], vb[:, 1]) < min_pair_distance_m
     # Ties broken by the truncated residual sum (MSAC-like).
-    score = counts - np.minimum(r2, t2).sum(axis=1) / (t2 * (n + 1))
+    score = counts - np.minimum(r2, t2, out=tmp).sum(axis=1) / (t2 * (n + 1))
     score[degenerate] = -np.inf
     best = int(np.argmax(score))
     mask: BoolArray = inl[best]

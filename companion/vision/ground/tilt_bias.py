@@ -48,7 +48,16 @@ MAP_A: FloatArray = np.array(
         [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
     ]
 )
+MAP_B.flags.writeable = False  # constants (refine caches their stack)
+MAP_A.flags.writeable = False
 _MIN_STD = 1e-9
+# Indices in z of (beta_0, beta_1, wa_0, wa_1, sa): the reference frame's state; of (beta, wb, sb): the
+# current frame's. Precomputed open meshes of both (hot path).
+_REF_IDX = np.array([0, 1, 5, 6, 7])
+_REF_IX = np.ix_(_REF_IDX, _REF_IDX)
+_CUR_IDX = np.array([0, 1, 2, 3, 4])
+_CUR_IX = np.ix_(_CUR_IDX, _CUR_IDX)
+_EYE2 = np.eye(2)
 
 
 @dataclass(frozen=True)
@@ -92,8 +101,6 @@ def pair_prior(
     sw2 = max(white_std_rad, _MIN_STD) ** 2
     mean = np.zeros(NUM_NUISANCE)
     cov = np.zeros((NUM_NUISANCE, NUM_NUISANCE))
-    # Indices in z of (beta_0, beta_1, wa_0, wa_1, sa): the reference frame's state.
-    ref_idx = np.array([0, 1, 5, 6, 7])
     ref_mean = np.zeros(5)
     ref_cov = np.diag([sb2, sb2, sw2, sw2, max(height_rel_std_ref, _MIN_STD) ** 2])
     if state is not None:
@@ -109,9 +116,9 @@ def pair_prior(
         ref_mean[:2] *= phi
         ref_cov[:2, :] *= phi
         ref_cov[:, :2] *= phi
-        ref_cov[:2, :2] += np.eye(2) * (1.0 - phi * phi) * sb2
-    mean[ref_idx] = ref_mean
-    cov[np.ix_(ref_idx, ref_idx)] = ref_cov
+        ref_cov[:2, :2] += _EYE2 * (1.0 - phi * phi) * sb2
+    mean[_REF_IDX] = ref_mean
+    cov[_REF_IX] = ref_cov
     cov[2, 2] = cov[3, 3] = sw2
     cov[4, 4] = max(height_rel_std_cur, _MIN_STD) ** 2
     return mean, 0.5 * (cov + cov.T)
@@ -119,6 +126,5 @@ def pair_prior(
 
 def state_after(nuisance_mean: FloatArray, nuisance_cov: FloatArray, cur_stamp_s: float) -> TiltState:
     """The current frame's state from the pair posterior of z: (beta, wb, sb) marginal."""
-    idx = np.array([0, 1, 2, 3, 4])
-    cov = nuisance_cov[np.ix_(idx, idx)]
-    return TiltState(nuisance_mean[idx].copy(), 0.5 * (cov + cov.T), float(cur_stamp_s))
+    cov = nuisance_cov[_CUR_IX]
+    return TiltState(nuisance_mean[_CUR_IDX].copy(), 0.5 * (cov + cov.T), float(cur_stamp_s))
