@@ -13,21 +13,14 @@ from companion.camera import PinholeCamera
 from companion.daemon.pipeline import Measurement, VisionPipeline
 from companion.estimation import ImuSample, NavFilterConfig, NavigationFilter
 from companion.geometry import frames, se3
+from companion.vision.ground import GroundEstimate
 
 
-@dataclass(frozen=True)
-class OdometerOutput:
-    """What `GroundOdometer.update` returns, as far as the pipeline reads it."""
-
-    ok: bool
-    x_m: float
-    y_m: float
-    yaw_rad: float
-    dx_m: float
-    dy_m: float
-    dyaw_rad: float
-    covariance: np.ndarray
-    dt_s: float
+def odometer_output(ok: bool, x_m: float, y_m: float, yaw_rad: float, dx_m: float, dy_m: float, dyaw_rad: float,
+                    covariance: np.ndarray, dt_s: float) -> GroundEstimate:
+    """A `GroundEstimate` with the fields the pipeline reads."""
+    return GroundEstimate(ok, x_m, y_m, yaw_rad, dx_m, dy_m, dyaw_rad, covariance, num_matches=100,
+                          num_inliers=80 if ok else 0, dt_s=dt_s)
 
 
 @dataclass(frozen=True)
@@ -85,7 +78,7 @@ def test_ground_increments_are_turned_into_the_filters_heading(odometer_yaw_rad:
     c, s = math.cos(odometer_yaw_rad), math.sin(odometer_yaw_rad)
     cov_body = np.diag([0.004**2, 0.001**2, 0.002**2])
     R_odo = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    out = OdometerOutput(True, 5.0, -2.0, odometer_yaw_rad, c * fwd - s * right, s * fwd + c * right, 0.004,
+    out = odometer_output(True, 5.0, -2.0, odometer_yaw_rad, c * fwd - s * right, s * fwd + c * right, 0.004,
                          R_odo @ cov_body @ R_odo.T, dt_s=0.0667)
     ground_pipeline().fuse(Measurement(stamp_s=1.0, seq=0, rack=None, ground=out, process_s=0.0), nav)
     (fed,) = nav.ground
@@ -98,7 +91,7 @@ def test_ground_increments_are_turned_into_the_filters_heading(odometer_yaw_rad:
 
 def test_failed_ground_frames_pass_through_unchanged() -> None:
     nav = RecordingFilter(0.0)
-    out = OdometerOutput(False, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, np.zeros((3, 3)), dt_s=0.0)
+    out = odometer_output(False, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, np.zeros((3, 3)), dt_s=0.0)
     ground_pipeline().fuse(Measurement(stamp_s=1.0, seq=0, rack=None, ground=out, process_s=0.0), nav)
     assert nav.ground == [out]
 
@@ -115,7 +108,7 @@ def test_rotated_increments_drive_the_real_filter_along_the_body_motion() -> Non
             t = round(t + 0.01, 10)
             f.add_imu(ImuSample(t, np.zeros(3), gravity))
         # odometer heading +90 deg: forward (north for the filter) is east in its NED
-        out = OdometerOutput(True, 0.0, 0.0, math.pi / 2, 0.0, 0.0 if k == 1 else 0.02, 0.0,
+        out = odometer_output(True, 0.0, 0.0, math.pi / 2, 0.0, 0.0 if k == 1 else 0.02, 0.0,
                              np.diag([0.002**2, 0.002**2, 0.001**2]), dt_s=0.0 if k == 1 else 0.05)
         pipeline.fuse(Measurement(stamp_s=t, seq=k, rack=None, ground=out, process_s=0.0), f)
     est = f.estimate()
@@ -160,7 +153,7 @@ def test_ground_increment_with_the_pipes_in_view_is_barely_trusted() -> None:
                               rack_model=_small_rack(), initial_T_ned_body=np.eye(4))
     nav = RecordingFilter(0.0)
     cov = np.diag([0.002**2, 0.002**2, 0.001**2])
-    out = OdometerOutput(True, 0.0, 0.0, 0.0, 0.03, -0.01, 0.002, cov, dt_s=0.0667)
+    out = odometer_output(True, 0.0, 0.0, 0.0, 0.03, -0.01, 0.002, cov, dt_s=0.0667)
     T_rack_cam = frames.T_rack_cam_from_T_ned_body(np.eye(4), frames.default_T_ned_rack(),
                                                    frames.default_T_body_cam())
     for rack_ok in (False, True):

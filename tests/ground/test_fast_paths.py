@@ -8,9 +8,11 @@ import pytest
 from companion.vision.ground import tilt_bias
 from companion.vision.ground.backproject import ground_rays_level, level_camera, rays_to_level
 from companion.vision.ground.refine import (
+    _corrected_points,
     _instrument_system,
     _stacked_maps,
     residuals_and_jacobian_exact,
+    tilt_fields,
 )
 from companion.vision.ground.robust import ransac_rigid, residual_norms
 
@@ -24,12 +26,47 @@ def _rays(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.column_stack([rng.uniform(-0.6, 0.6, (n, 2)), np.ones(n)])
 
 
+def _instrument_reference(
+    params: np.ndarray, rays_a: np.ndarray, height_a_m: float, nadir_a_m: np.ndarray, rays_b: np.ndarray,
+    height_b_m: float, nadir_b_m: np.ndarray, map_b: np.ndarray, map_a: np.ndarray,
+) -> np.ndarray:
+    """The instrument Jacobian (N, 2, 3 + m) in its plain form: `tilt_fields` of both frames at the
+    noise-averaged midpoints m = (P_a + d + R P_b) / 2 (and their image in frame b)."""
+    z = params[3:]
+    ea, eb = map_a @ z, map_b @ z
+    Pa = _corrected_points(rays_a, height_a_m, nadir_a_m, ea)
+    Pb = _corrected_points(rays_b, height_b_m, nadir_b_m, eb)
+    c, s = np.cos(params[2]), np.sin(params[2])
+    rb = np.stack([c * Pb[:, 0] - s * Pb[:, 1], s * Pb[:, 0] + c * Pb[:, 1]], axis=-1)
+    n = rays_a.shape[0]
+    J = np.zeros((n, 2, 3 + z.size))
+    J[:, 0, 0] = 1.0
+    J[:, 1, 1] = 1.0
+    J[:, 0, 2] = -rb[:, 1]
+    J[:, 1, 2] = rb[:, 0]
+    d = params[:2]
+    mid_a = 0.5 * (Pa + d + rb)
+    ma = mid_a - d
+    mid_b = np.stack([c * ma[:, 0] + s * ma[:, 1], -s * ma[:, 0] + c * ma[:, 1]], axis=-1)
+    Fa = np.transpose(tilt_fields(mid_a, nadir_a_m, height_a_m * (1.0 + ea[2])), (1, 2, 0))  # (N, 2, 3)
+    Fb = np.transpose(tilt_fields(mid_b, nadir_b_m, height_b_m * (1.0 + eb[2])), (1, 2, 0))
+    Fa[:, :, 2] /= 1.0 + ea[2]
+    Fb[:, :, 2] /= 1.0 + eb[2]
+    Fb_rot = np.empty_like(Fb)
+    Fb_rot[:, 0] = c * Fb[:, 0] - s * Fb[:, 1]
+    Fb_rot[:, 1] = s * Fb[:, 0] + c * Fb[:, 1]
+    J[:, :, 3:] = Fb_rot @ map_b - Fa @ map_a
+    return J
+
+
 def test_instrument_system_matches_the_instrument_jacobian(rng: np.random.Generator) -> None:
     rays_a, rays_b = _rays(rng, 40), _rays(rng, 40)
     nadir_a, nadir_b = np.array([0.02, -0.01]), np.array([-0.03, 0.04])
     p = np.concatenate([[0.05, -0.03, 0.02], rng.normal(0.0, 0.01, tilt_bias.NUM_NUISANCE)])
     args = (rays_a, 1.2, nadir_a, rays_b, 1.35, nadir_b, tilt_bias.MAP_B, tilt_bias.MAP_A)
-    _, J = residuals_and_jacobian_exact(p, *args, instrument=True)
+    J = _instrument_reference(p, *args)
+    _, J_public = residuals_and_jacobian_exact(p, *args, instrument=True)
+    np.testing.assert_array_equal(J_public.reshape(-1, J.shape[2]), _instrument_system(p, *args))
     Jf = _instrument_system(p, *args)
     np.testing.assert_allclose(Jf, J.reshape(Jf.shape), rtol=1e-12, atol=1e-14)
 

@@ -397,31 +397,19 @@ def residuals_and_jacobian_exact(
     r = np.empty((n, 2))
     r[:, 0] = params[0] + rb_x - Pa[:, 0]
     r[:, 1] = params[1] + rb_y - Pa[:, 1]
+    if instrument:
+        Jf = _instrument_system(params, rays_a, height_a_m, nadir_a_m, rays_b, height_b_m, nadir_b_m, map_b, map_a,
+                                Pa, Pb)
+        return r, Jf.reshape(n, 2, 3 + z.size)
     J = np.zeros((n, 2, 3 + z.size))
     J[:, 0, 0] = 1.0
     J[:, 1, 1] = 1.0
     J[:, 0, 2] = -rb_y
     J[:, 1, 2] = rb_x
-    if not instrument:
-        Jb_rot = np.empty_like(Jb)
-        Jb_rot[:, 0] = c * Jb[:, 0] - s * Jb[:, 1]
-        Jb_rot[:, 1] = s * Jb[:, 0] + c * Jb[:, 1]
-        J[:, :, 3:] = Jb_rot @ map_b - Ja @ map_a
-        return r, J
-    d = params[:2]
-    mid_a = 0.5 * (Pa + d + np.stack([rb_x, rb_y], axis=-1))
-    ma = mid_a - d
-    mid_b = np.stack([c * ma[:, 0] + s * ma[:, 1], -s * ma[:, 0] + c * ma[:, 1]], axis=-1)
-    # At the corrected heights, as the exact columns (a frame's tilt warp ~ q^2 / (h (1 + s))).
-    ea, eb = map_a @ z, map_b @ z
-    Fa = np.transpose(tilt_fields(mid_a, nadir_a_m, height_a_m * (1.0 + ea[2])), (1, 2, 0))  # (N, 2, 3)
-    Fb = np.transpose(tilt_fields(mid_b, nadir_b_m, height_b_m * (1.0 + eb[2])), (1, 2, 0))
-    Fa[:, :, 2] /= 1.0 + ea[2]  # d P / d s = h u = (P - nadir) / (1 + s)
-    Fb[:, :, 2] /= 1.0 + eb[2]
-    Fb_rot = np.empty_like(Fb)
-    Fb_rot[:, 0] = c * Fb[:, 0] - s * Fb[:, 1]
-    Fb_rot[:, 1] = s * Fb[:, 0] + c * Fb[:, 1]
-    J[:, :, 3:] = Fb_rot @ map_b - Fa @ map_a
+    Jb_rot = np.empty_like(Jb)
+    Jb_rot[:, 0] = c * Jb[:, 0] - s * Jb[:, 1]
+    Jb_rot[:, 1] = s * Jb[:, 0] + c * Jb[:, 1]
+    J[:, :, 3:] = Jb_rot @ map_b - Ja @ map_a
     return r, J
 
 
