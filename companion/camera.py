@@ -141,29 +141,43 @@ class PinholeCamera:
         p = p.reshape(-1, 3)
         z = p[:, 2]
         front = z > _MIN_DEPTH_M
-        zs = np.where(front, z, 1.0)
+        all_front = bool(front.all())  # the usual case: skip the masking (trackers call this per iteration)
+        zs = z if all_front else np.where(front, z, 1.0)
         xn = p[:, :2] / zs[:, None]
         if self.dist is None:
             xd, Jd = xn, None
         else:
             xd, Jd = self._distort(xn, with_jacobian)
+        fx, fy, sk = self.fx, self.fy, self.skew
         uv = np.empty_like(xd)
-        uv[:, 0] = self.fx * xd[:, 0] + self.skew * xd[:, 1] + self.cx
-        uv[:, 1] = self.fy * xd[:, 1] + self.cy
-        uv[~front] = np.nan
+        uv[:, 0] = fx * xd[:, 0] + sk * xd[:, 1] + self.cx
+        uv[:, 1] = fy * xd[:, 1] + self.cy
+        if not all_front:
+            uv[~front] = np.nan
         J: FloatArray | None = None
         if with_jacobian:
-            # d xn / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-            Jn = np.zeros((p.shape[0], 2, 3))
-            Jn[:, 0, 0] = 1.0 / zs
-            Jn[:, 1, 1] = 1.0 / zs
-            Jn[:, 0, 2] = -xn[:, 0] / zs
-            Jn[:, 1, 2] = -xn[:, 1] / zs
-            if Jd is not None:
-                Jn = Jd @ Jn
-            Kp = np.array([[self.fx, self.skew], [0.0, self.fy]])
-            J = np.einsum("ij,njk->nik", Kp, Jn)
-            J[~front] = np.nan
+            # d xn / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]; J = K_2x2 (Jd) d xn / d p, written out.
+            inv_z = 1.0 / zs
+            j02 = -xn[:, 0] / zs
+            j12 = -xn[:, 1] / zs
+            if Jd is None:
+                J = np.empty((p.shape[0], 2, 3))
+                J[:, 0, 0] = fx * inv_z
+                J[:, 0, 1] = sk * inv_z
+                J[:, 0, 2] = fx * j02 + sk * j12
+                J[:, 1, 0] = 0.0
+                J[:, 1, 1] = fy * inv_z
+                J[:, 1, 2] = fy * j12
+            else:
+                Jn = np.zeros((p.shape[0], 2, 3))
+                Jn[:, 0, 0] = inv_z
+                Jn[:, 1, 1] = inv_z
+                Jn[:, 0, 2] = j02
+                Jn[:, 1, 2] = j12
+                Kp = np.array([[fx, sk], [0.0, fy]])
+                J = np.einsum("ij,njk->nik", Kp, Jd @ Jn)
+            if not all_front:
+                J[~front] = np.nan
         if single:
             return uv[0], (None if J is None else J[0])
         return uv, J

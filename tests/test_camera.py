@@ -131,3 +131,17 @@ def test_bad_files_and_values(tmp_path: Path) -> None:
         PinholeCamera(width=10, height=10, fx=1.0, fy=1.0, cx=5.0, cy=5.0, dist=(0.1, 0.2, 0.3))
     with pytest.raises(InputError, match="width"):
         PinholeCamera(width=0, height=10, fx=1.0, fy=1.0, cx=5.0, cy=5.0)
+
+
+def test_points_behind_the_camera_are_nan_and_the_rest_unchanged() -> None:
+    rng = np.random.default_rng(5)
+    p = rng.normal(0.0, 1.0, (200, 3)) + np.array([0.0, 0.0, 2.0])
+    p[:5, 2] = [-1.0, 0.0, 1e-12, -3.0, 1e-10]  # behind / on the camera plane
+    for cam in (PinholeCamera(width=720, height=480, fx=630.0, fy=640.0, cx=355.0, cy=245.0, skew=0.7),
+                PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0,
+                              dist=(0.1, -0.05, 0.001, 0.002, 0.0))):
+        uv, J = cam.project_with_jacobian(p)
+        uv_front, J_front = cam.project_with_jacobian(p[5:])
+        assert np.all(np.isnan(uv[:5])) and np.all(np.isnan(J[:5]))
+        np.testing.assert_array_equal(uv[5:], uv_front)
+        np.testing.assert_array_equal(J[5:], J_front)

@@ -137,3 +137,12 @@ def test_bad_input() -> None:
         se3.exp(np.zeros(5))
     with pytest.raises(InputError, match="T"):
         se3.log(np.eye(3))
+
+
+def test_exp_one_matches_exp() -> None:
+    rng = np.random.default_rng(41)
+    twists = [np.zeros(6), np.array([0.1, -0.2, 0.3, 0.0, 0.0, 1e-9]), np.array([0.0, 0.0, 0.0, 5e-4, -3e-4, 2e-4])]
+    twists += [rng.normal(0.0, s, 6) for s in (1e-4, 1e-3, 0.01, 0.3, 1.0) for _ in range(3)]
+    twists.append(np.array([0.2, 0.1, -0.3, np.pi - 1e-6, 0.0, 0.0]))
+    for xi in twists:
+        assert np.allclose(se3.exp_one(xi), se3.exp(xi), rtol=0.0, atol=1e-15), xi

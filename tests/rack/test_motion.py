@@ -9,7 +9,6 @@ from companion.geometry import se3, so3
 from companion.vision.rack import RackModel
 from companion.vision.rack.limbs import sample_limbs
 from companion.vision.rack.motion import (
-    exp_twist,
     gap_jacobian,
     median_1d,
     pose_jacobian,
@@ -115,14 +114,6 @@ def test_irls_recovers_parameters_despite_outliers(rng: np.random.Generator) -> 
         np.testing.assert_allclose(x, x_true, atol=2e-4)
     w = robust_weights(np.array([0.0, 1.0, 10.0]), "paper", 1.0, gate_px=5.0)
     np.testing.assert_allclose(w, [1.0, 0.5, 0.0])
-
-
-def test_exp_twist_matches_se3_exp(rng: np.random.Generator) -> None:
-    twists = [np.zeros(6), np.array([0.1, -0.2, 0.3, 0.0, 0.0, 1e-9]), np.array([0.0, 0.0, 0.0, 5e-4, -3e-4, 2e-4])]
-    twists += [rng.normal(0.0, s, 6) for s in (1e-4, 1e-3, 0.01, 0.3, 1.0) for _ in range(3)]
-    twists.append(np.array([0.2, 0.1, -0.3, np.pi - 1e-6, 0.0, 0.0]))
-    for xi in twists:
-        assert np.allclose(exp_twist(xi), se3.exp(xi), rtol=0.0, atol=1e-15), xi
 
 
 def test_median_1d_matches_numpy(rng: np.random.Generator) -> None:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.camera import _MIN_DEPTH_M, PinholeCamera
+from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.vision.rack.model import PipeArrays
 
@@ -238,7 +238,7 @@ def sample_limbs(
     # Occlusion by other pipes, with a margin of a few pixels at the sample's depth.
     margin_m = occlusion_margin_px * p_cam[:, 2] / camera.fx
     vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
-    uv, J = project_with_jacobian(camera, p_cam)
+    uv, J = camera.project_with_jacobian(p_cam)
     lo = -0.5 + margin_px
     with np.errstate(invalid="ignore"):
         vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
@@ -257,40 +257,6 @@ def sample_limbs(
     n_img[flip] = -n_img[flip]
     return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
                        segments_uv=seg, segment_limb=idx)
-
-
-def project_with_jacobian(camera: PinholeCamera, p_cam: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """`camera.project_with_jacobian` for (N, 3) points, without its input checks when undistorted.
-
-    The pinhole branch repeats the camera's arithmetic operation for operation (same results);
-    distorted cameras go through the camera itself.
-    """
-    if camera.dist is not None:
-        return camera.project_with_jacobian(p_cam)
-    z = p_cam[:, 2]
-    front = z > _MIN_DEPTH_M
-    all_front = bool(front.all())
-    zs = z if all_front else np.where(front, z, 1.0)
-    x0 = p_cam[:, 0] / zs
-    x1 = p_cam[:, 1] / zs
-    fx, fy, sk = camera.fx, camera.fy, camera.skew
-    uv = np.empty((p_cam.shape[0], 2))
-    uv[:, 0] = fx * x0 + sk * x1 + camera.cx
-    uv[:, 1] = fy * x1 + camera.cy
-    inv_z = 1.0 / zs
-    j02 = -x0 / zs
-    j12 = -x1 / zs
-    J = np.empty((p_cam.shape[0], 2, 3))
-    J[:, 0, 0] = fx * inv_z
-    J[:, 0, 1] = sk * inv_z
-    J[:, 0, 2] = fx * j02 + sk * j12
-    J[:, 1, 0] = 0.0
-    J[:, 1, 1] = fy * inv_z
-    J[:, 1, 2] = fy * j12
-    if not all_front:
-        uv[~front] = np.nan
-        J[~front] = np.nan
-    return uv, J
 
 
 def _empty_samples() -> LimbSamples:

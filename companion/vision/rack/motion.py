@@ -12,51 +12,12 @@ rack +x axis (eq. 23-26): d p_cam / d d̄_k = R_cam_rack e_x.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
 from companion.checks import FloatArray
 from companion.errors import InputError
-
-_SMALL_RAD = 1e-3  # the series threshold of companion.geometry.so3
-
-
-def exp_twist(xi: FloatArray) -> FloatArray:
-    """`se3.exp` (4, 4) of ONE twist (6,) = (v (m), w (rad)), without batching and input checks.
-
-    Same formulas and thresholds as `companion.geometry.se3.exp` / `so3.exp` (R = exp(w),
-    t = J_l(w) v with the sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 coefficients and their
-    series below 1e-3 rad), for the tracker's per-iteration updates where the generic batched
-    path's checks dominate; agrees with it to rounding (tested).
-    """
-    w0, w1, w2 = float(xi[3]), float(xi[4]), float(xi[5])
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    theta = math.sqrt(t2)
-    if theta < _SMALL_RAD:
-        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
-    else:
-        s = math.sin(theta)
-        A = s / theta
-        B = 2.0 * math.sin(0.5 * theta) ** 2 / (theta * theta)
-        C = (theta - s) / (theta * theta * theta)
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    WW = W @ W
-    T = np.zeros((4, 4))
-    T[:3, :3] = A * W + B * WW
-    T[0, 0] += 1.0
-    T[1, 1] += 1.0
-    T[2, 2] += 1.0
-    J_l = B * W + C * WW
-    J_l[0, 0] += 1.0
-    J_l[1, 1] += 1.0
-    J_l[2, 2] += 1.0
-    T[:3, 3] = J_l @ np.asarray(xi[:3], dtype=np.float64)
-    T[3, 3] = 1.0
-    return T
 
 
 def pose_jacobian(J_uv_pcam: FloatArray, p_cam: FloatArray) -> FloatArray:

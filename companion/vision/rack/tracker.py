@@ -23,10 +23,9 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
 from companion.vision.rack.edges import search_edges
-from companion.vision.rack.limbs import LimbSamples, occluded, project_with_jacobian, sample_limbs
+from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
-    exp_twist,
     gap_jacobian,
     information_condition,
     median_1d,
@@ -251,7 +250,7 @@ class RackTracker:
         if cfg.velocity_prediction and self._last_stamp is not None:
             dt = float(stamp_s) - self._last_stamp
             if 0.0 < dt <= 0.5:
-                T = T @ exp_twist(self._velocity * dt)
+                T = T @ se3.exp_one(self._velocity * dt)
         T_pred = T.copy()
         gaps = self._gaps.copy()
         pipes = self._pipe_arrays(gaps)
@@ -466,7 +465,7 @@ class RackTracker:
             w[r_e.size :] *= cfg.texture_weight
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
-            T = T @ exp_twist(x[:6])
+            T = T @ se3.exp_one(x[:6])
             if n_gap:
                 gaps = gaps + x[6:i_bias]
                 pipes = self._pipe_arrays(gaps)
@@ -531,7 +530,7 @@ class RackTracker:
         if k == 0:
             return np.zeros((0, n_par)), np.zeros(0)
         p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
-        uv, J = project_with_jacobian(self.camera, p_cam)
+        uv, J = self.camera.project_with_jacobian(p_cam)
         A = np.zeros((2 * k, n_par))
         A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
         if self.config.estimate_gaps and self._n_gaps:
