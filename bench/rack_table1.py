@@ -242,6 +242,9 @@ def main() -> None:
                 if n_p == max(pipes_list):
                     all_cpu.extend(r["cpu_ms"][1:])
                     all_wall.extend(r["wall_ms"][1:])
+            print(f"{n_p} pipes, run {run + 1}/{runs}: rms orientation "
+                  + ", ".join(f"f{f} {r['rms_orientation_deg']:.3f} deg" for f, r in zip(feats_list, res, strict=True)),
+                  file=sys.stderr, flush=True)
         for f in feats_list:
             rs = cell_runs[f]
             table[f"p{n_p}_f{f}"] = {

@@ -29,11 +29,19 @@ class TextureMap:
     offset_rack: FloatArray  # (K, 3) point minus its pipe's axis start, rack frame (m)
     uv_last: FloatArray  # (K, 2) last measured pixel
     n_obs: FloatArray  # (K,) number of observations averaged into offset_rack
+    # Reference of each point for drift-free tracking (`templates.py`): the patch around the
+    # point in the image it was (re-)referenced in, and that image's camera pose.
+    ref_patch: np.ndarray[Any, np.dtype[np.float32]]  # (K, S, S) grey levels
+    ref_R: FloatArray  # (K, 3, 3) R_rack_cam of the reference image
+    ref_o: FloatArray  # (K, 3) camera centre of the reference image, rack frame (m)
+    point_id: IntArray  # (K,) unique, increasing over the map's life (for diagnostics)
+    next_id: int = 0
 
     @classmethod
-    def empty(cls) -> TextureMap:
+    def empty(cls, patch_size: int = 1) -> TextureMap:
         return cls(pipe=np.zeros(0, dtype=np.intp), offset_rack=np.zeros((0, 3)), uv_last=np.zeros((0, 2)),
-                   n_obs=np.zeros(0))
+                   n_obs=np.zeros(0), ref_patch=np.zeros((0, patch_size, patch_size), dtype=np.float32),
+                   ref_R=np.zeros((0, 3, 3)), ref_o=np.zeros((0, 3)), point_id=np.zeros(0, dtype=np.intp))
 
     def __len__(self) -> int:
         return int(self.pipe.size)
@@ -46,12 +54,33 @@ class TextureMap:
         self.offset_rack = self.offset_rack[mask]
         self.uv_last = self.uv_last[mask]
         self.n_obs = self.n_obs[mask]
+        self.ref_patch = self.ref_patch[mask]
+        self.ref_R = self.ref_R[mask]
+        self.ref_o = self.ref_o[mask]
+        self.point_id = self.point_id[mask]
 
-    def add(self, pipe: IntArray, offset_rack: FloatArray, uv: FloatArray) -> None:
+    def add(
+        self, pipe: IntArray, offset_rack: FloatArray, uv: FloatArray,
+        ref_patch: np.ndarray[Any, np.dtype[np.float32]], T_rack_cam: FloatArray,
+    ) -> None:
+        """Append points (J): pipe, offset from the pipe's axis start (m), pixel, reference patch
+        (J, S, S) and the pose of the image they were found in."""
+        j = pipe.size
         self.pipe = np.concatenate([self.pipe, pipe])
         self.offset_rack = np.vstack([self.offset_rack, offset_rack])
         self.uv_last = np.vstack([self.uv_last, uv])
-        self.n_obs = np.concatenate([self.n_obs, np.ones(pipe.size)])
+        self.n_obs = np.concatenate([self.n_obs, np.ones(j)])
+        self.ref_patch = np.concatenate([self.ref_patch, ref_patch.astype(np.float32)])
+        self.ref_R = np.concatenate([self.ref_R, np.broadcast_to(T_rack_cam[:3, :3], (j, 3, 3))])
+        self.ref_o = np.vstack([self.ref_o, np.broadcast_to(T_rack_cam[:3, 3], (j, 3))])
+        self.point_id = np.concatenate([self.point_id, np.arange(self.next_id, self.next_id + j, dtype=np.intp)])
+        self.next_id += j
+
+    def normals_rack(self, pipes: PipeArrays) -> FloatArray:
+        """Unit surface normals (K, 3) at the points, rack frame (radial from the pipe's axis)."""
+        v = pipes.directions[self.pipe]
+        radial = self.offset_rack - np.einsum("ni,ni->n", self.offset_rack, v)[:, None] * v
+        return np.asarray(radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12))
 
     def refine(
         self, T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays, uv: FloatArray, max_obs: float

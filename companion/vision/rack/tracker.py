@@ -1,7 +1,8 @@
 """Model-based SE(3) tracker of a camera over a pipe-rack (Lippiello & Cacace, section III).
 
 Per frame: predict the pose (constant velocity), track the texture points (Lucas-Kanade seeded
-by their predicted projection), then iterate: render the visible limbs from the current
+by their predicted projection, refined against each point's reference patch warped into the
+current view so that the tracks do not drift), then iterate: render the visible limbs from the current
 estimate (eq. 10-14), search the image edge along each sample's normal, stack the normal
 components of the generators' motion fields (eq. 8-9, 15) for the edges and the full image
 motion for the texture points, add the gap parameters' fields (eq. 23-26), solve the IRLS
@@ -33,6 +34,7 @@ from companion.vision.rack.motion import (
     robust_weights,
     solve_normal_equations,
 )
+from companion.vision.rack.templates import align_templates, sample_patches, tangent_plane_warps
 from companion.vision.rack.texture import TextureMap, detect_points, track_points
 
 _ROBUST_KINDS = ("paper", "tukey", "l2")
@@ -68,7 +70,12 @@ class RackTrackerConfig:
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
     a point's 3-D position is averaged over (1 = keep the position from the first sighting),
-    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points).
+    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points);
+    `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
+    patch (from the image it was found in), warped into the current view through the pipe's
+    tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
+    Gauss-Newton steps: frame-to-frame tracking alone drifts by pixels within seconds;
+    points whose aligned patch correlates below `template_min_ncc` are dropped.
     Health: `min_edge_points` agreeing samples, `min_inlier_fraction`, `max_residual_px`
     robust residual std, `max_condition` of the normalised information matrix, `inlier_px`
     agreement threshold; `covariance_inflation` multiplies the covariance (edge samples along
@@ -106,7 +113,7 @@ class RackTrackerConfig:
     edge_bias_rate_px: float = 0.02
     velocity_prediction: bool = True
     max_texture_points: int = 50
-    texture_weight: float = 10.0
+    texture_weight: float = 20.0
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
@@ -114,6 +121,10 @@ class RackTrackerConfig:
     texture_refine_obs: int = 20
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
+    texture_templates: bool = True
+    template_half_px: int = 5
+    template_iterations: int = 2
+    template_min_ncc: float = 0.5
     min_edge_points: int = 20
     min_inlier_fraction: float = 0.35
     max_residual_px: float = 2.0
@@ -125,11 +136,13 @@ class RackTrackerConfig:
         if self.robust not in _ROBUST_KINDS:
             raise InputError(f"robust: expected one of {_ROBUST_KINDS}, got {self.robust!r}")
         for name in ("samples_per_limb", "search_range_px", "init_search_range_px", "max_iterations",
-                     "init_iterations", "detect_every", "lk_window_px"):
+                     "init_iterations", "detect_every", "lk_window_px", "template_half_px", "template_iterations"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
+        if not -1.0 <= self.template_min_ncc <= 1.0:
+            raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
         for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
@@ -192,7 +205,7 @@ class RackTracker:
         self._edge_bias = np.zeros(2)
         self._polarity = np.zeros(n_limbs)
         self._polarity_known = np.zeros(n_limbs, dtype=bool)
-        self._texture = TextureMap.empty()
+        self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
         self._velocity = np.zeros(6)
         self._last_stamp: float | None = None
@@ -202,6 +215,7 @@ class RackTracker:
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
         self._weights_cache: dict[bool, tuple[FloatArray, FloatArray]] = {}
+        self._stale_ref = np.zeros(0, dtype=bool)
 
     # ------------------------------------------------------------------ public API
     def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
@@ -217,7 +231,7 @@ class RackTracker:
         self._edge_bias = np.zeros(2)
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
-        self._texture = TextureMap.empty()
+        self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray = None
         self._velocity = np.zeros(6)
         self._last_stamp = None
@@ -267,7 +281,11 @@ class RackTracker:
             tex_uv, tex_ok = track_points(self._prev_gray, gray, self._texture.uv_last, guess,
                                           cfg.lk_window_px, cfg.lk_levels)
             tex_ok &= vis & cam.in_image(tex_uv, 4.0)
+            if cfg.texture_templates:
+                tex_uv, tex_ok = self._align_to_references(img_raw, T, pipes, tex_uv, tex_ok)
             self._texture.keep(tex_ok)
+            if self._stale_ref.size == tex_ok.size:
+                self._stale_ref = self._stale_ref[tex_ok]
             tex_uv = tex_uv[tex_ok]
         # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
         if first:
@@ -339,7 +357,7 @@ class RackTracker:
             self._edge_bias = last["bias"]
             self._initialized = True
             self._update_polarity(last["samples"], last["meas"].sign, agree)
-            self._update_texture(gray, T, pipes, tex_uv, last["samples"])
+            self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
@@ -560,15 +578,55 @@ class RackTracker:
         self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
         self._polarity_known |= seen
 
+    def _ref_patch_size(self) -> int:
+        """Side of the stored reference patches: room for the window scaled by up to ~1.6."""
+        half = int(np.ceil(1.6 * (self.config.template_half_px + 1))) + 1
+        return 2 * half + 1
+
+    def _align_to_references(
+        self, img: np.ndarray[Any, np.dtype[np.float32]], T: FloatArray, pipes: PipeArrays, uv: FloatArray,
+        ok: Any,
+    ) -> tuple[FloatArray, Any]:
+        """Refine the Lucas-Kanade pixels `uv` (K, 2) on the points' warped references (pose T).
+
+        Points whose reference no longer covers the warped window keep their Lucas-Kanade
+        pixel and are marked for re-referencing (`_stale_ref`) once the frame's pose is known.
+        """
+        cfg = self.config
+        tm = self._texture
+        ok = np.asarray(ok, dtype=bool).copy()
+        self._stale_ref = np.zeros(len(tm), dtype=bool)
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return uv, ok
+        A = tangent_plane_warps(T, self.camera, uv[idx], tm.points_rack(pipes)[idx], tm.normals_rack(pipes)[idx],
+                                tm.ref_R[idx], tm.ref_o[idx])
+        res = align_templates(img, uv[idx], A, tm.ref_patch[idx], cfg.template_half_px, cfg.template_iterations)
+        near = np.all(np.isfinite(res.uv), axis=1) & (np.linalg.norm(res.uv - uv[idx], axis=1) <= 3.0)
+        good = res.inside & near & (res.ncc >= cfg.template_min_ncc)
+        uv = uv.copy()
+        uv[idx[good]] = res.uv[good]
+        # Inside the reference but no match near the Lucas-Kanade pixel: not the same point.
+        ok[idx[res.inside & ~good]] = False
+        self._stale_ref[idx[~res.inside]] = True
+        return uv, ok
+
     def _update_texture(
-        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray,
-        samples: LimbSamples,
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], img_f: np.ndarray[Any, np.dtype[np.float32]],
+        T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray, samples: LimbSamples,
     ) -> None:
         cfg = self.config
         if cfg.max_texture_points == 0:
             return
         tm = self._texture
+        half_ref = (self._ref_patch_size() - 1) // 2
         if len(tm):
+            if cfg.texture_templates and self._stale_ref.size == len(tm) and np.any(self._stale_ref):
+                # The view changed too much for the stored patch: this image becomes the reference.
+                st = np.flatnonzero(self._stale_ref)
+                tm.ref_patch[st] = sample_patches(img_f, tex_uv[st], half_ref)
+                tm.ref_R[st] = T[:3, :3]
+                tm.ref_o[st] = T[:3, 3]
             p_cam = (tm.points_rack(pipes) - T[:3, 3]) @ T[:3, :3]
             uv = self.camera.project(p_cam)
             res = np.linalg.norm(tex_uv - uv, axis=1)
@@ -597,4 +655,4 @@ class RackTracker:
             cfg.texture_min_incidence_cos,
         )
         if new_pipe.size:
-            tm.add(new_pipe, new_off, new_uv)
+            tm.add(new_pipe, new_off, new_uv, sample_patches(img_f, new_uv, half_ref), T)
