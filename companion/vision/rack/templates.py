@@ -130,7 +130,7 @@ def align_templates(
     w = int(half_window)
     g1 = _grid(w + 1)  # one extra ring for the template gradient
     P1 = 2 * w + 3
-    finite = np.isfinite(warps).all(axis=(1, 2))
+    finite: BoolArray = np.asarray(np.isfinite(warps).all(axis=(1, 2)))
     A = np.where(finite[:, None, None], warps, 0.0)
     pos = A @ g1.T  # reference offsets (K, 2, P1*P1)
     inside = finite & (np.abs(pos).max(axis=(1, 2)) <= H - 1.0)
