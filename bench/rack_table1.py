@@ -331,6 +331,12 @@ def main() -> None:
         "runs_per_cell": runs,
         "seconds_per_run": seconds,
         "table1": table,
+        # The acceptance figure: each cell's mean over its runs (as the paper's Table I reports).
+        "all_cell_means_pass": bool(all(
+            c["rms_position_m"]["mean"] <= 0.02 and c["rms_orientation_deg"]["mean"] <= 0.2 and c["lost_frames"] == 0
+            for c in table.values()
+        )),
+        # Stricter: every single run of every cell within the targets.
         "all_cells_pass": bool(all(
             c["rms_position_m"]["max"] <= 0.02 and c["rms_orientation_deg"]["max"] <= 0.2 and c["lost_frames"] == 0
             for c in table.values()

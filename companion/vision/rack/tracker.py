@@ -109,7 +109,7 @@ class RackTrackerConfig:
     motion_prior_translation_m: float = 0.03
     motion_prior_rotation_rad: float = 0.01
     estimate_gaps: bool = False
-    estimate_edge_bias: bool = False
+    estimate_edge_bias: bool = True
     edge_bias_rate_px: float = 0.02
     velocity_prediction: bool = True
     max_texture_points: int = 50
