@@ -401,16 +401,29 @@ def residuals_and_jacobian_exact(
         Jf = _instrument_system(params, rays_a, height_a_m, nadir_a_m, rays_b, height_b_m, nadir_b_m, map_b, map_a,
                                 Pa, Pb)
         return r, Jf.reshape(n, 2, 3 + z.size)
-    J = np.zeros((n, 2, 3 + z.size))
+    return r, _pair_jacobian(rb_x, rb_y, c, s, Ja, Jb, map_a, map_b)
+
+
+def _pair_jacobian(
+    rb_x: FloatArray, rb_y: FloatArray, c: float, s: float, Fa: FloatArray, Fb: FloatArray, map_a: FloatArray,
+    map_b: FloatArray,
+) -> FloatArray:
+    """Jacobian (N, 2, 3 + m) of r = d + R(dyaw) P_b - P_a in (dx, dy, dyaw, z): identity in d,
+    the rotated P_b (`rb_x`, `rb_y`) in dyaw, and in z the per-point fields of P_a and P_b with
+    respect to their tilt/height errors (`Fa`, `Fb`, (N, 2, 3)) through `map_a`, `map_b` (3, m);
+    `c`, `s` are cos and sin of dyaw."""
+    n = rb_x.shape[0]
+    m = map_a.shape[1]
+    Fb_rot = np.empty_like(Fb)
+    Fb_rot[:, 0] = c * Fb[:, 0] - s * Fb[:, 1]
+    Fb_rot[:, 1] = s * Fb[:, 0] + c * Fb[:, 1]
+    J = np.zeros((n, 2, 3 + m))
     J[:, 0, 0] = 1.0
     J[:, 1, 1] = 1.0
     J[:, 0, 2] = -rb_y
     J[:, 1, 2] = rb_x
-    Jb_rot = np.empty_like(Jb)
-    Jb_rot[:, 0] = c * Jb[:, 0] - s * Jb[:, 1]
-    Jb_rot[:, 1] = s * Jb[:, 0] + c * Jb[:, 1]
-    J[:, :, 3:] = Jb_rot @ map_b - Ja @ map_a
-    return r, J
+    J.reshape(2 * n, 3 + m)[:, 3:] = Fb_rot.reshape(2 * n, 3) @ map_b - Fa.reshape(2 * n, 3) @ map_a
+    return J
 
 
 def _rotation_xy_rows(wx: float, wy: float) -> list[list[float]]:
@@ -500,18 +513,8 @@ def _instrument_system(
     F[:, :, 0, 1] = x * x * inv_h
     F[:, :, 0, 2] = x / scale_col
     F[:, :, 1, 2] = y / scale_col
-    Fa, Fb = F[0], F[1]
-    Fb_rot = np.empty_like(Fb)
-    Fb_rot[:, 0] = c * Fb[:, 0] - s * Fb[:, 1]
-    Fb_rot[:, 1] = s * Fb[:, 0] + c * Fb[:, 1]
-    J = np.zeros((n, 2, 3 + z.size))
-    J[:, 0, 0] = 1.0
-    J[:, 1, 1] = 1.0
-    J[:, 0, 2] = -RPb[:, 1]
-    J[:, 1, 2] = RPb[:, 0]
-    Jf = J.reshape(2 * n, 3 + z.size)
-    Jf[:, 3:] = Fb_rot.reshape(2 * n, 3) @ map_b - Fa.reshape(2 * n, 3) @ map_a
-    return Jf
+    J = _pair_jacobian(RPb[:, 0], RPb[:, 1], c, s, F[0], F[1], map_a, map_b)
+    return J.reshape(2 * n, 3 + z.size)
 
 
 _MAP_CACHE: list[tuple[FloatArray, FloatArray, FloatArray]] = []

@@ -282,7 +282,7 @@ class RackTracker:
                                           cfg.lk_window_px, cfg.lk_levels)
             tex_ok &= vis & cam.in_image(tex_uv, 4.0)
             if cfg.texture_templates:
-                tex_uv, tex_ok = self._align_to_references(img_raw, T, pipes, tex_uv, tex_ok)
+                tex_uv, tex_ok = self._align_to_references(img_raw, T, pipes, p_rack, tex_uv, tex_ok)
             self._texture.keep(tex_ok)
             if self._stale_ref.size == tex_ok.size:
                 self._stale_ref = self._stale_ref[tex_ok]
@@ -584,10 +584,11 @@ class RackTracker:
         return 2 * half + 1
 
     def _align_to_references(
-        self, img: np.ndarray[Any, np.dtype[np.float32]], T: FloatArray, pipes: PipeArrays, uv: FloatArray,
-        ok: Any,
+        self, img: np.ndarray[Any, np.dtype[np.float32]], T: FloatArray, pipes: PipeArrays, p_rack: FloatArray,
+        uv: FloatArray, ok: Any,
     ) -> tuple[FloatArray, Any]:
-        """Refine the Lucas-Kanade pixels `uv` (K, 2) on the points' warped references (pose T).
+        """Refine the Lucas-Kanade pixels `uv` (K, 2) of the points at `p_rack` (K, 3) on their
+        warped references (pose T).
 
         Points whose reference no longer covers the warped window keep their Lucas-Kanade
         pixel and are marked for re-referencing (`_stale_ref`) once the frame's pose is known.
@@ -599,7 +600,7 @@ class RackTracker:
         idx = np.flatnonzero(ok)
         if idx.size == 0:
             return uv, ok
-        A = tangent_plane_warps(T, self.camera, uv[idx], tm.points_rack(pipes)[idx], tm.normals_rack(pipes)[idx],
+        A = tangent_plane_warps(T, self.camera, uv[idx], p_rack[idx], tm.normals_rack(pipes)[idx],
                                 tm.ref_R[idx], tm.ref_o[idx])
         res = align_templates(img, uv[idx], A, tm.ref_patch[idx], cfg.template_half_px, cfg.template_iterations)
         near = np.all(np.isfinite(res.uv), axis=1) & (np.linalg.norm(res.uv - uv[idx], axis=1) <= 3.0)
