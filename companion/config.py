@@ -411,6 +411,10 @@ class SafetyLimits(_Section):
     gcs_loss_land_s: float = field(default=30.0, metadata=_check(_ge(0)))
     vision_loss_hover_ms: float = field(default=300.0, metadata=_check(_gt(0)))
     vision_loss_land_s: float = field(default=10.0, metadata=_check(_ge(0)))
+    # a hold ends by itself (the paused mission resumes) once the cause has been gone this long; 0 = only
+    # the operator's `companion mission resume` ends it
+    vision_resume_s: float = field(default=1.0, metadata=_check(_ge(0)))
+    gcs_resume_s: float = field(default=3.0, metadata=_check(_ge(0)))
     geofence_min_ned_m: tuple[float, float, float] | None = None
     geofence_max_ned_m: tuple[float, float, float] | None = None
     max_speed_m_s: float = field(default=1.0, metadata=_check(_gt(0)))
@@ -444,6 +448,9 @@ class MissionConfig(_Section):
     speed_limit_m_s: float = field(default=1.0, metadata=_check(_gt(0)))
     # heading errors above this are turned out in place before moving (0 = off)
     turn_first_deg: float = field(default=20.0, metadata=_check(_between(0, 180)))
+    # how long the take-off waits for the autopilot's pre-arm checks (ArduCopter's EKF aligns on the
+    # vision poses for ~14 s after they start) before the action fails with the autopilot's reason
+    arm_ready_timeout_s: float = field(default=40.0, metadata=_check(_gt(0)))
 
 
 @dataclass(frozen=True)

@@ -94,7 +94,31 @@ async def test_vision_loss_stops_the_pose_stream_and_holds(tmp_path: Path) -> No
         assert r.ap.mode == "BRAKE"
         assert float(np.linalg.norm(r.ap.truth.velocity_ned_m_s[:2])) < 0.3
         assert not r.received("SET_POSITION_TARGET_LOCAL_NED", since_s=t_hover + 0.2)
-        assert r.daemon.executor is not None and r.daemon.executor.state is State.ABORTED
+        # a hold pauses the mission (it resumes when vision is back); it does not end it
+        assert r.daemon.executor is not None and r.daemon.executor.state is State.PAUSED
+
+
+async def test_short_vision_loss_holds_then_resumes_in_guided(tmp_path: Path) -> None:
+    # issue #13 item 4: a 1-2 s vision fault must not end the flight; the mission resumes, and the
+    # daemon (who resumes motion) switches the autopilot back to GUIDED before it streams setpoints
+    async with rig(tmp_path, overrides={"safety": {"vision_loss_hover_ms": 200}}) as r:
+        await airborne(r)
+        ex = r.daemon.executor
+        assert ex is not None
+        t_fault = r.clock.now()
+        r.camera.featureless = True
+        await r.advance_until(lambda: first_mode_command(r, BRAKE, t_fault) is not None, max_s=2.0)
+        await r.advance(0.2)
+        assert r.ap.mode == "BRAKE" and ex.state is State.PAUSED
+        t_back = r.clock.now()
+        r.camera.featureless = False
+        await r.advance_until(lambda: ex.state is State.RUNNING, max_s=3.0)
+        await r.advance_until(lambda: r.ap.mode == "GUIDED", max_s=3.0)
+        assert first_mode_command(r, 4.0, t_back) is not None  # MAV_CMD_DO_SET_MODE GUIDED sent by the daemon
+        assert r.ap.armed and r.ap.truth.height_m > 0.8
+        await r.advance(1.0)
+        assert r.received("SET_POSITION_TARGET_LOCAL_NED", since_s=r.clock.now() - 0.5)
+        assert first_mode_command(r, LAND, t_fault) is None
 
 
 async def test_ceiling_no_climb_above_the_limit(tmp_path: Path) -> None:

@@ -37,6 +37,7 @@ import numpy as np
 
 from companion.checks import FloatArray, check_transform
 from companion.clock import Clock, SystemClock
+from companion.daemon.arming import ModeDecision, ModeOwner, arm_when_ready, enter_guided
 from companion.daemon.flight import FlightFolder
 from companion.daemon.pipeline import FrameInputs, Measurement, VisionPipeline, rack_std_floor_from_config
 from companion.errors import CameraError, CompanionError, ConfigError, InputError, LinkError, MissionError
@@ -177,6 +178,9 @@ class Daemon:
         self._safety_retry_s = 0.0
         self._turn_key: tuple[int, str] | None = None
         self._turn_pivot: FloatArray | None = None
+        self.mode_owner = ModeOwner()
+        self._safety_paused = False  # the running mission was paused by a safety hold
+        self._mode_task: asyncio.Task[None] | None = None
         self._health_prev: tuple[int, int, int, int, float] = (0, 0, 0, 0, self.clock.now())
         self._range_stamp_s: float | None = None
         self.last_fresh_pose_s: float | None = None
@@ -402,6 +406,8 @@ class Daemon:
             gcs_land_timeout_s=lim.gcs_loss_land_s if lim.gcs_loss_land_s > 0 else None,
             vision_timeout_s=lim.vision_loss_hover_ms / 1000.0,
             vision_land_timeout_s=lim.vision_loss_land_s if lim.vision_loss_land_s > 0 else None,
+            vision_auto_resume_s=lim.vision_resume_s if lim.vision_resume_s > 0 else None,
+            gcs_auto_resume_s=lim.gcs_resume_s if lim.gcs_resume_s > 0 else None,
             geofence_min_ned_m=lim.geofence_min_ned_m,
             geofence_max_ned_m=lim.geofence_max_ned_m,
         ))
@@ -535,6 +541,12 @@ class Daemon:
         for obs in list(self.event_observers):
             with contextlib.suppress(Exception):
                 obs(name, fields)
+
+    def _gcs_text(self, text: str, severity: str = "info") -> None:
+        """A "companion: ..." STATUSTEXT to the GCS (best effort)."""
+        if self.link is not None:
+            with contextlib.suppress(Exception):
+                self.link.statustext(f"companion: {text}"[:200], severity)
 
     def _notify(self, what: str) -> None:
         if not self.options.sdnotify:
@@ -728,6 +740,7 @@ class Daemon:
         self.mission_id = mission_id
         self._servo.reset() if self._servo is not None else None
         self.executor.start(self.clock.now())
+        self.mode_owner.claim()  # motion starts (even while airborne): the guided mode is ours to set
         self._event("mission-start", mission=mission.name, id=mission_id, actions=len(mission.actions))
 
     def takeoff_refusal(self) -> str | None:
@@ -816,6 +829,8 @@ class Daemon:
                 cmd = VelocityCommand.zero()
             if cmd is not None and self.safety is not None:
                 cmd = self.safety.filter(cmd, self._safety_inputs(), now)
+            self._own_mode(ex, now, moving=out.goal is not None and self._safety_view.allow_mission,
+                           request_pending=out.pending_request is not None)
             if cmd is not None and out.pending_request is None:
                 self.link.set_velocity_command(cmd)
                 self._last_command = cmd
@@ -827,6 +842,43 @@ class Daemon:
                 # clamp that releases does not make the next command jump; nothing sent = at rest
                 sent = cmd if cmd is not None and out.pending_request is None else None
                 self._servo.record_sent(sent, now)
+
+    def _own_mode(self, ex: Any, now: float, *, moving: bool, request_pending: bool) -> None:
+        """Apply the mode-ownership rule (`companion.daemon.arming.ModeOwner`) for this control step."""
+        from companion.mission import State
+
+        link = self.link
+        profile = None if link is None else link.profile
+        if link is None or profile is None or ex.state is not State.RUNNING:
+            return
+        busy = request_pending or (self._request_task is not None and not self._request_task.done())
+        decision = self.mode_owner.decide(moving=moving, armed=bool(link.state.armed), airborne=not self._landed(),
+                                          mode=link.state.mode, guided_mode=profile.guided_mode,
+                                          request_pending=busy,
+                                          mode_stamp_s=link.state.last_autopilot_heartbeat_s)
+        if decision is ModeDecision.ENTER_GUIDED:
+            self._mode_task = asyncio.create_task(self._claim_guided(profile.guided_mode), name="enter-guided")
+        elif decision is ModeDecision.PAUSE:
+            reason = f"mode changed to {link.state.mode} outside the companion: mission paused (resume to continue)"
+            with contextlib.suppress(MissionError):
+                ex.pause(now)
+            self._event("mission-paused", level=logging.WARNING, reason=reason)
+            self._gcs_text(reason, "warning")
+
+    async def _claim_guided(self, guided_mode: str) -> None:
+        failure = await enter_guided(self.mode_owner, self._enter_guided, self.clock.now)
+        if failure is None:
+            self._event("mode", mode=guided_mode, reason="motion starts or resumes")
+            return
+        from companion.mission import State
+
+        reason = f"cannot switch the autopilot to {guided_mode}: {failure}; mission paused"
+        self._event("mission-paused", level=logging.WARNING, reason=reason)
+        self._gcs_text(reason, "warning")
+        ex = self.executor
+        if ex is not None and ex.state is State.RUNNING:
+            with contextlib.suppress(MissionError):
+                ex.pause(self.clock.now())
 
     def _turn_first(self, goal: Any, T_ned_body: FloatArray) -> FloatArray:
         """The pose to servo to now: for a large heading change, first turn in place, then go.
@@ -891,11 +943,15 @@ class Daemon:
                     raise LinkError("autopilot type unknown: cannot arm")
                 if profile.name == "ardupilot":  # arm in GUIDED and take off inside it
                     await link.set_mode(profile.guided_mode)
-                await link.arm()
+                waited = await arm_when_ready(link, self.clock.sleep, self.clock.now,
+                                              timeout_s=float(self.config.mission.arm_ready_timeout_s),
+                                              say=lambda text: self._gcs_text(text, "info"))
+                self._event("armed", waited_s=round(waited, 2))
             elif request.kind is RequestKind.TAKEOFF:
                 await link.takeoff(float(request.height_m))
                 await self._wait_height(float(request.height_m))
                 await self._enter_guided()
+                self.mode_owner.accepted(self.clock.now())
             elif request.kind is RequestKind.LAND:
                 await link.land()
             elif request.kind is RequestKind.HOLD:
@@ -1073,6 +1129,22 @@ class Daemon:
             self._safety_view.last_action = str(out.action)
             if changed and out.action is not SafetyAction.NONE:
                 await self._apply_safety_action(out.action)
+            elif changed and self._safety_paused:
+                self._resume_after_safety()
+
+    def _resume_after_safety(self) -> None:
+        """The fault that paused the mission has cleared: resume it (the guided mode is claimed again)."""
+        from companion.mission import State
+
+        self._safety_paused = False
+        ex = self.executor
+        if ex is None or ex.state is not State.PAUSED:
+            return
+        with contextlib.suppress(MissionError):
+            ex.resume(self.clock.now())
+            self.mode_owner.claim()
+            self._event("mission-resumed", reason="safety hold cleared")
+            self._gcs_text("safety hold cleared: mission resumed", "info")
 
     async def _apply_safety_action(self, action: Any) -> None:
         from companion.safety import SafetyAction
@@ -1081,9 +1153,21 @@ class Daemon:
         if link is None:
             return
         if self._mission_active():
+            from companion.mission import State
+
+            assert self.executor is not None
+            # a hold (vision, GCS or autopilot link briefly lost) pauses the mission so that it can resume
+            # when the fault clears; a landing ends it
+            pause = action in (SafetyAction.HOVER, SafetyAction.STOP_COMMANDS) and \
+                (self.executor.state is State.RUNNING or self._safety_paused)
             with contextlib.suppress(CompanionError):
-                assert self.executor is not None
-                self.executor.abort(self.clock.now(), f"safety: {action}")
+                if pause:
+                    if self.executor.state is State.RUNNING:
+                        self.executor.pause(self.clock.now())
+                    self._safety_paused = True
+                else:
+                    self.executor.abort(self.clock.now(), f"safety: {action}")
+                    self._safety_paused = False
             if self._request_task is not None and not self._request_task.done():
                 self._request_task.cancel()
         link.set_velocity_command(None)
@@ -1227,7 +1311,15 @@ class _Controller:
         self._executor(mission_id).pause(self._d.clock.now())
 
     async def resume(self, mission_id: str | None) -> None:
-        self._executor(mission_id).resume(self._d.clock.now())
+        ex = self._executor(mission_id)
+        safety = self._d.safety
+        if safety is not None and self._d._safety_view.last_action not in ("none", ""):
+            # a safety hold: the operator's resume ends it (refused while its cause persists)
+            if not safety.operator_resume(self._d.clock.now()):
+                raise MissionError(f"resume refused: safety hold ({self._d._safety_view.last_action}) still needed")
+            return  # the watchdog resumes the mission when the hold ends
+        ex.resume(self._d.clock.now())
+        self._d.mode_owner.claim()  # motion resumes: the guided mode is ours to set again
 
     async def abort(self, mission_id: str | None) -> None:
         self._executor(mission_id).abort(self._d.clock.now(), "operator abort")

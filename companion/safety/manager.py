@@ -115,6 +115,8 @@ class SafetyConfig:
     vision_timeout_s: no fresh pose for this long -> stop poses, hover; vision_land_timeout_s -> land.
     vision_auto_resume_s: when set, a vision hover ends by itself after poses have been fresh for
         this long (s); None = only `operator_resume` ends it.
+    gcs_auto_resume_s: when set, a GCS-loss hover (not a landing) ends by itself after GCS
+        heartbeats have been back for this long (s); None = only `operator_resume` ends it.
     autopilot_timeout_s: no autopilot heartbeat for this long -> STOP_COMMANDS.
     geofence_min_ned_m / geofence_max_ned_m: NED box (m) or None; velocities toward a face are
         limited to geofence_gain_per_s * distance to it.
@@ -139,6 +141,7 @@ class SafetyConfig:
     vision_timeout_s: float = 0.5
     vision_land_timeout_s: float | None = 10.0
     vision_auto_resume_s: float | None = None
+    gcs_auto_resume_s: float | None = None
     autopilot_timeout_s: float = 3.0
     geofence_min_ned_m: tuple[float, float, float] | None = None
     geofence_max_ned_m: tuple[float, float, float] | None = None
@@ -149,7 +152,7 @@ class SafetyConfig:
         optional = {
             "min_ceiling_clearance_m", "battery_low_v", "battery_low_pct", "battery_critical_v",
             "battery_critical_pct", "gcs_timeout_s", "gcs_land_timeout_s", "vision_land_timeout_s",
-            "vision_auto_resume_s",
+            "vision_auto_resume_s", "gcs_auto_resume_s",
         }
         for f in fields(self):
             if f.name.startswith("geofence_") and f.name != "geofence_gain_per_s":
@@ -325,6 +328,7 @@ class SafetyManager:
         self._vision_hover = False
         self._vision_land = False
         self._vision_fresh_since_s: float | None = None
+        self._gcs_back_since_s: float | None = None
         self._faults: frozenset[Fault] = frozenset()
         self._action = SafetyAction.NONE
         self._state = SafetyState.NOMINAL
@@ -388,6 +392,15 @@ class SafetyManager:
                 faults.add(Fault.GCS_LOST_LAND)
                 if inputs.airborne:
                     self._gcs_land = True
+            if gcs_age <= c.gcs_timeout_s and self._gcs_hover and not self._gcs_land \
+                    and c.gcs_auto_resume_s is not None and self._gcs_back_since_s is not None \
+                    and now_s - self._gcs_back_since_s >= c.gcs_auto_resume_s:
+                self._gcs_hover = False
+                self._emit(now_s, "resume", "GCS link back: hover ended automatically", "info")
+            if gcs_age > c.gcs_timeout_s:
+                self._gcs_back_since_s = None
+            elif self._gcs_back_since_s is None:
+                self._gcs_back_since_s = now_s
 
         # Vision: stale poses are never forwarded; airborne -> hover, then land.
         pose_age = _age(now_s, inputs.last_pose_s)

@@ -161,6 +161,10 @@ class VehicleState:
     ekf_origin_alt_m: float | None = None
     last_imu: ImuSample | None = None
     sim_truth: SimTruth | None = None
+    prearm_ok: bool | None = None  # SYS_STATUS PREARM_CHECK health; None when the autopilot does not report it
+    home_position_stamp_s: float | None = None  # last HOME_POSITION
+    arming_text: str | None = None  # the autopilot's last "PreArm:"/"Arm:"/"Preflight" STATUSTEXT
+    arming_text_stamp_s: float | None = None
 
     @property
     def height_m(self) -> float | None:
@@ -298,7 +302,17 @@ class StateTracker:
             values["battery_current_a"] = msg.current_battery * 1e-2
         if msg.battery_remaining >= 0:
             values["battery_remaining_pct"] = float(msg.battery_remaining)
+        if int(msg.onboard_control_sensors_present) & MAV_SYS_STATUS_PREARM_CHECK:
+            values["prearm_ok"] = bool(int(msg.onboard_control_sensors_health) & MAV_SYS_STATUS_PREARM_CHECK)
         self._set(**values)
+
+    def _home_position(self, msg: Any, now_s: float) -> None:
+        self._set(home_position_stamp_s=now_s)
+
+    def _statustext(self, msg: Any, now_s: float) -> None:
+        text = str(msg.text).rstrip("\x00").strip()
+        if text.startswith(_ARMING_TEXT_PREFIXES):
+            self._set(arming_text=text, arming_text_stamp_s=now_s)
 
     def _battery_status(self, msg: Any, now_s: float) -> None:
         if msg.id != 0:
@@ -396,6 +410,9 @@ class StateTracker:
 
 
 G_M_S2e3 = G_M_S2 * 1e-3  # milli-g to m/s^2
+MAV_SYS_STATUS_PREARM_CHECK = 0x10000000
+# ArduPilot: "PreArm: ..." (periodic) and "Arm: ..." (on an ARM command); PX4: "Preflight Fail: ..."
+_ARMING_TEXT_PREFIXES = ("PreArm:", "Arm:", "Preflight")
 _LANDED_STATES = {1: "on_ground", 2: "in_air", 3: "takeoff", 4: "landing"}  # MAV_LANDED_STATE
 
 
@@ -429,4 +446,6 @@ _HANDLERS: dict[str, Any] = {
     "HIGHRES_IMU": StateTracker._highres_imu,
     "SCALED_IMU": StateTracker._scaled_imu,
     "SIM_STATE": StateTracker._sim_state,
+    "HOME_POSITION": StateTracker._home_position,
+    "STATUSTEXT": StateTracker._statustext,
 }
