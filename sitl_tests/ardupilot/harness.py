@@ -105,3 +105,48 @@ async def sitl_rig(tmp_path: Path, *, extra_params: dict[str, float] | None = No
                 yield rig
             finally:
                 observer.stop()
+
+
+def toml_text(data: dict[str, Any]) -> str:
+    """A TOML file for `companion run` from plain tables of scalars and lists (test configs only)."""
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, int | float):
+            return repr(v)
+        if isinstance(v, list | tuple):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+    lines: list[str] = []
+    for section, table in data.items():
+        lines.append(f"[{section}]")
+        for key, v in table.items():
+            if isinstance(v, dict):
+                raise ValueError(f"{section}.{key}: nested tables are not supported here")
+            lines.append(f"{key} = {value(v)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def run_config(tmp_path: Path, url: str, api_port: int, overrides: dict[str, Any] | None = None) -> Path:
+    """The simulator's default config as a file for `companion run` against the SITL at `url`."""
+    import tomllib
+
+    from companion.data import data_path
+
+    data = tomllib.loads(data_path("sim_default.toml").read_text(encoding="utf-8"))
+    lat, lon, alt = HOME_LLA
+    data["mavlink"]["url"] = url
+    data["rack"]["model"] = str(data_path(str(data["rack"]["model"])))
+    data["ekf_origin"].update({"enabled": True, "lat_deg": lat, "lon_deg": lon, "alt_m": alt})
+    data["safety"].update({"battery_low_v": BATTERY_LOW_V, "battery_critical_v": 10.5})
+    data["logging"]["flight_root"] = str(tmp_path / "flights")
+    data["mission"].update({"photo_folder": str(tmp_path / "photos"), "upload_folder": str(tmp_path / "missions")})
+    data["api"] = {"enabled": True, "bind": "127.0.0.1", "port": api_port}
+    for k, v in (overrides or {}).items():
+        data.setdefault(k, {}).update(v)
+    path = tmp_path / "companion.toml"
+    path.write_text(toml_text(data), encoding="utf-8")
+    return path
