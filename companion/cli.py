@@ -185,7 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sim", help="fly a mission in the simulator and write a report")
     p.add_argument("--mission", metavar="FILE", help="mission XML (default: the example rack inspection)")
-    p.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot")
+    p.add_argument("--autopilot", choices=("ardupilot", "px4", "ardupilot-sitl"), default="ardupilot",
+                   help="the fake autopilot's ArduPilot or PX4 profile, or the real ArduCopter SITL "
+                   "(../shared/ardupilot or $COMPANION_ARDUPILOT_SITL; real time)")
     p.add_argument(
         "--fault", action="append", default=[], metavar="SPEC",
         help="KIND@SECONDS[:DURATION]; KIND one of battery-sag, battery-critical, gcs-loss, vision-loss, "

@@ -173,6 +173,10 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     from companion.sim.render import FaultyRender, SceneRenderer
     from drivers.camera import load_camera_model
 
+    if options.autopilot == "ardupilot-sitl":
+        from companion.sim.run_sitl import run_sim_sitl
+
+        return await run_sim_sitl(options, out if out is not None else sys.stdout)  # type: ignore[no-any-return]
     clock = clock or (SystemClock() if options.speed == 1.0 else ScaledClock(options.speed))
     speed = float(getattr(clock, "speed", 1.0))
     out = out if out is not None else sys.stdout
@@ -265,6 +269,13 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
             vpe = ap.received_of("VISION_POSITION_ESTIMATE")
             collect_frames(frames_seen, render, vpe, boot_s, record, speed,
                             stamp_base=link.pose_time_base or "autopilot")
+    report, report_path, plot_path = finish_report(record, daemon, config, camera_model, out_dir, speed)
+    return SimResult(record=record, report=report, report_path=report_path, plot_path=plot_path, frames=frames_seen)
+
+
+def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any, out_dir: Path, speed: float,
+                  extra: dict[str, Any] | None = None) -> tuple[dict[str, Any], Path, Path | None]:
+    """Build the report of a finished flight, write ``report.json`` and ``trajectory.png`` into `out_dir`."""
     report = build_report(record)
     nf = daemon.nav_filter
     if nf is not None:
@@ -275,6 +286,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     report["speed"] = speed
     if speed != 1.0:
         report["notes"].append(f"ran at {speed:g}x real time; rates are per simulated second, latencies in wall ms")
+    report.update(extra or {})
     report_path = out_dir / "report.json"
     report_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     plot_path: Path | None = out_dir / "trajectory.png"
@@ -283,7 +295,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     except Exception as exc:
         record.notes.append(f"plot failed: {exc}")
         plot_path = None
-    return SimResult(record=record, report=report, report_path=report_path, plot_path=plot_path, frames=frames_seen)
+    return report, report_path, plot_path
 
 
 def _visual_ground_z(config: Any, renderer: Any) -> float:

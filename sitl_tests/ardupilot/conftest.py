@@ -23,6 +23,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.timeout(420))
 
 
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    from sitl_tests.ardupilot.harness import FIGURES
+
+    if FIGURES:
+        terminalreporter.section("figures measured on the ArduCopter SITL")
+        for line in FIGURES:
+            terminalreporter.write_line(line)
+
+
 @pytest.fixture
 def sitl_available() -> Path:
     binary = sitl_binary()

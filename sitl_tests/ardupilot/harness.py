@@ -29,6 +29,15 @@ from companion.sim.render import FaultyRender, SceneRenderer
 from companion.sim.run import sim_config
 from drivers.camera import load_camera_model
 
+FIGURES: list[str] = []  # printed at the end of the pytest run (conftest.py)
+
+
+def report(line: str) -> None:
+    """A measured figure for the test log: printed now and again in the run's terminal summary."""
+    FIGURES.append(line)
+    print(f"[ardupilot] {line}", flush=True)
+
+
 HOME_LLA = (-35.363261, 149.165230, 584.0)  # ArduPilot's SITL default home (CMAC), heading set to 0
 BATTERY_LOW_V = 11.1
 
@@ -47,7 +56,7 @@ class SitlRig:
     def say(self, line: str) -> None:
         """Print a figure into the test log (pytest -s or the captured output of a failure)."""
         self.log.append(line)
-        print(f"[ardupilot] {line}", flush=True)
+        report(line)
 
     async def wait_until(self, cond: Callable[[], bool], timeout_s: float, what: str, poll_s: float = 0.1) -> float:
         """Wait (real time) until `cond()`; returns the seconds it took; AssertionError naming `what`."""

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from companion.sim.ardupilot_sitl import ArduPilotSitl, SitlObserver
-from sitl_tests.ardupilot.harness import HOME_LLA, run_config
+from sitl_tests.ardupilot.harness import HOME_LLA, report, run_config
 
 GUIDED, LAND, BRAKE = 4, 9, 17
 MISSION = """<?xml version="1.0" encoding="UTF-8"?>
@@ -108,11 +108,11 @@ async def test_sigterm_mid_mission_leaves_arducopter_holding(sitl_available: Pat
             modes_after = sorted({int(m.fields["custom_mode"]) for m in ob.messages("HEARTBEAT", t_after)})
             lands = [m.time_s for m in ob.messages("HEARTBEAT", t_term) if int(m.fields["custom_mode"]) == LAND]
             texts_after = [t for t in ob.statustexts(t_term) if not t.startswith("companion")]
-            print("[ardupilot] SIGTERM mid-mission: " + json.dumps({
+            report("SIGTERM mid-mission: " + json.dumps({
                 "brake_after_s": round(brake_s, 2), "daemon_exit_after_s": round(exit_s, 2),
                 "height_holding_m": round(h_hold, 2), "modes_in_20_s_after": modes_after,
                 "arducopter_land_mode_after_s": round(lands[0] - t_term, 1) if lands else None,
-                "armed_20_s_after": ob.armed, "autopilot_texts": texts_after[:8]}), flush=True)
+                "armed_20_s_after": ob.armed, "autopilot_texts": texts_after[:8]}))
             assert brake_s <= 3.0
         finally:
             ob.stop()
