@@ -251,7 +251,9 @@ class MavlinkConfig(_Section):
     profile: Literal["auto", "ardupilot", "px4"] = "auto"
     gcs_forward: tuple[str, ...] = field(default=(), metadata=_check(_urls))
     tlog: bool = True
-    odometry: bool = False  # send ODOMETRY instead of VISION_POSITION/SPEED_ESTIMATE
+    # true: ODOMETRY; false: VISION_POSITION_ESTIMATE + VISION_SPEED_ESTIMATE; "auto" (default): what the
+    # detected autopilot fuses -- ODOMETRY for PX4 (it ignores VISION_SPEED_ESTIMATE), VISION_* for ArduPilot
+    odometry: bool | Literal["auto"] = "auto"
     # time base of the pose stamps (usec): "auto" = "local" for PX4 (its receiver converts usec with its
     # own TIMESYNC estimate), "autopilot" (TIMESYNC-converted) for ArduPilot and others
     pose_stamp_base: Literal["auto", "autopilot", "local"] = "auto"

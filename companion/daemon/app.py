@@ -20,6 +20,7 @@ and the flight folder is flushed.
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import dataclasses
@@ -179,6 +180,8 @@ class Daemon:
         self._turn_key: tuple[int, str] | None = None
         self._turn_pivot: FloatArray | None = None
         self.mode_owner = ModeOwner()
+        self._last_health_line = ""
+        self._latency_ms: collections.deque[float] = collections.deque(maxlen=100)
         self._safety_paused = False  # the running mission was paused by a safety hold
         self._mode_task: asyncio.Task[None] | None = None
         self._health_prev: tuple[int, int, int, int, float] = (0, 0, 0, 0, self.clock.now())
@@ -253,7 +256,8 @@ class Daemon:
         ):
             self._tasks.append(asyncio.create_task(coro, name=f"daemon-{name}"))
         self._watcher = asyncio.create_task(self._shutdown_watcher(), name="daemon-shutdown")
-        self._notify("ready")
+        # READY=1 once the autopilot is heard (the notify loop), not before: systemd shows what it waits for
+        self._notify(f"waiting for the autopilot on {cfg.mavlink.url}")
         self._event("daemon-started")
 
     async def _shutdown_watcher(self) -> None:
@@ -427,7 +431,7 @@ class Daemon:
             "command_timeout_s": cfg.mavlink.command_timeout_s,
             "command_retries": cfg.mavlink.command_retries,
             "request_sim_state": cfg.camera.kind == "synthetic" and self.options.pose_source is None,
-            "pose_message": "odometry" if cfg.mavlink.odometry else "vision",
+            "pose_message": {True: "odometry", False: "vision"}.get(cfg.mavlink.odometry, "auto"),
             "pose_stamp_base": cfg.mavlink.pose_stamp_base,
             "forward_urls": tuple(cfg.mavlink.gcs_forward),
         }
@@ -574,10 +578,31 @@ class Daemon:
         interval = None
         if self._notifier is not None:
             interval = getattr(self._notifier, "watchdog_interval_s", None)
-        period = interval / 2.0 if interval else 5.0
+        period = min(interval / 2.0 if interval else 5.0, 1.0)
+        ready = False
+        last_status = ""
         while True:
             await self.clock.sleep(period)
             self._notify("watchdog")
+            heard = self.link is not None and self.link.state.last_autopilot_heartbeat_s is not None
+            if heard and not ready:
+                ready = True
+                self._notify("ready")
+            line = self.status_line() if heard else last_status
+            if line and line != last_status:
+                last_status = line
+                self._notify(line)
+
+    def status_line(self) -> str:
+        """One short line of what the daemon is doing (systemd STATUS=, the GCS on a change)."""
+        st = self.status()
+        link, est, cam = st["link"], st["estimator"], st["camera"]
+        mission = st["mission"]
+        m = mission["state"] if "done" not in mission else f"{mission['state']} {mission['done']}/{mission['actions']}"
+        armed = "armed" if link["armed"] else "disarmed"
+        return (f"{link['autopilot'] or 'no autopilot'} {link['mode'] or '-'} {armed}"
+                f"; camera {cam['state']}; vision {est['source']}{'' if est['ok'] else ' (not ok)'}"
+                f"; mission {m}; safety {st['safety']['action']}")
 
     # ================================================================ IMU + vision
     def _on_imu(self, sample: Any) -> None:
@@ -696,6 +721,7 @@ class Daemon:
         if sent:
             self.counters.poses_sent += 1
             self.last_pose_sent_s = float(frame.stamp_s)
+            self._latency_ms.append((self.clock.now() - float(frame.stamp_s)) * 1e3)
             if self.flight is not None:
                 self.flight.tum.write(float(nav.stamp_s), np.asarray(nav.T_ned_body))
         else:
@@ -1195,7 +1221,12 @@ class Daemon:
             self._event("health", **status)
             if self.link is not None:
                 with contextlib.suppress(Exception):
-                    self.link.statustext(self._health_line(status)[:200], "info")
+                    # the GCS gets the summary when it changes (a line every period floods QGC's messages);
+                    # the tracker health goes as NAMED_VALUE_FLOAT every period
+                    line = self._health_line(status)
+                    if line != self._last_health_line:
+                        self._last_health_line = line
+                        self.link.statustext(line[:200], "info")
                     self._tracker_health()
             if self.flight is not None:
                 self.flight.flush()
@@ -1219,8 +1250,7 @@ class Daemon:
     def _health_line(status: dict[str, Any]) -> str:
         est = status["estimator"]
         return (f"companion: cam {status['camera']['state']} vis {est['source']} ok={est['ok']} "
-                f"poses {status['daemon']['poses_sent']} mission {status['mission']['state']} "
-                f"safety {status['safety']['action']}")
+                f"mission {status['mission']['state']} safety {status['safety']['action']}")
 
     def status(self) -> dict[str, Any]:
         """A JSON-serializable status: daemon, link, camera, estimator, mission, safety."""
@@ -1253,7 +1283,9 @@ class Daemon:
             },
             "link": {
                 "url": self.config.mavlink.url,
-                "health": str(getattr(link, "health", "closed")) if link is not None else "closed",
+                "health": _health_name(link),
+                "last_heartbeat_age_s": None if state is None or state.last_autopilot_heartbeat_s is None
+                else round(now - state.last_autopilot_heartbeat_s, 1),
                 "autopilot": None if state is None else state.autopilot,
                 "mode": None if state is None else state.mode,
                 "armed": None if state is None else bool(state.armed),
@@ -1273,6 +1305,9 @@ class Daemon:
                 "position_ned_m": pos,
                 "reset_counter": None if nav is None else int(nav.reset_counter),
                 "last_pose_age_s": None if self.last_pose_sent_s is None else round(now - self.last_pose_sent_s, 3),
+                # capture -> pose on the socket, median of the last 100 poses: what VISO_DELAY_MS is set from
+                "capture_to_send_ms_p50": (None if not self._latency_ms
+                                           else round(float(np.median(self._latency_ms)), 1)),
             },
             "mission": mission,
             "safety": {
@@ -1281,6 +1316,15 @@ class Daemon:
                 "events": len(self._safety_view.events),
             },
         }
+
+
+def _health_name(link: Any) -> str:
+    """The link's state for people: "autopilot-ok", "no-autopilot-heard", "autopilot-lost", "disconnected"."""
+    if link is None:
+        return "closed"
+    health = getattr(link, "health", None)
+    value = str(getattr(health, "value", health))
+    return {"connected": "no-autopilot-heard"}.get(value, value).replace("_", "-")
 
 
 class _Controller:

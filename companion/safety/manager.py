@@ -425,7 +425,9 @@ class SafetyManager:
 
         # Autopilot link.
         autopilot_ok = _age(now_s, inputs.last_autopilot_heartbeat_s) <= c.autopilot_timeout_s
-        if not autopilot_ok:
+        # an autopilot never heard yet (the daemon starting before it) is not a lost link: nothing can be
+        # commanded (allow_commands/allow_takeoff stay False) but there is no fault to report
+        if not autopilot_ok and inputs.last_autopilot_heartbeat_s is not None:
             faults.add(Fault.AUTOPILOT_LOST)
 
         # Ceiling, clearance and geofence (enforced by filter(); reported here with hysteresis).
@@ -470,7 +472,7 @@ class SafetyManager:
                 return SafetyAction.LAND, SafetyState.LANDING
             if self._gcs_hover or self._vision_hover:
                 return SafetyAction.HOVER, SafetyState.HOLD
-        if not autopilot_ok:
+        if not autopilot_ok and inputs.last_autopilot_heartbeat_s is not None:
             return SafetyAction.STOP_COMMANDS, SafetyState.NO_AUTOPILOT
         return SafetyAction.NONE, SafetyState.NOMINAL
 

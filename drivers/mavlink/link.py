@@ -90,7 +90,8 @@ class LinkConfig:
     ``system_id`` None = use the autopilot's system id (the MAVLink rule for a companion);
     ``autopilot_profile`` None = detect ArduPilot/PX4 from the heartbeat. ``origin_*`` (degrees,
     metres AMSL) enable SET_GPS_GLOBAL_ORIGIN. ``pose_message`` is "vision" (VISION_POSITION_ESTIMATE
-    + VISION_SPEED_ESTIMATE) or "odometry". ``message_rates_hz`` maps message names to requested
+    + VISION_SPEED_ESTIMATE), "odometry", or "auto" (ODOMETRY for PX4,
+    "vision" otherwise). ``message_rates_hz`` maps message names to requested
     rates; ``request_sim_state`` adds SIM_STATE (simulator truth). ``forward_urls``: GCS endpoints
     that get every autopilot frame and whose frames go to the autopilot.
 
@@ -149,8 +150,8 @@ class LinkConfig:
             raise ConfigError(
                 f"link.pose_stamp_base must be one of {', '.join(POSE_STAMP_BASES)}, got {self.pose_stamp_base!r}"
             )
-        if self.pose_message not in ("vision", "odometry"):
-            raise ConfigError(f"link.pose_message must be 'vision' or 'odometry', got {self.pose_message!r}")
+        if self.pose_message not in ("vision", "odometry", "auto"):
+            raise ConfigError(f"link.pose_message must be 'vision', 'odometry' or 'auto', got {self.pose_message!r}")
         if self.setpoint_rate_hz < 10.0:
             raise ConfigError(f"link.setpoint_rate_hz must be >= 10, got {self.setpoint_rate_hz}")
         for name in ("heartbeat_period_s", "autopilot_timeout_s", "command_timeout_s", "origin_period_s"):
@@ -421,7 +422,7 @@ class MavLink:
         self._last_pose_stamp_s = pose.stamp_s
         usec = usec_from_s(peer_s)
         expires = pose.stamp_s + self.config.pose_max_age_s
-        if self.config.pose_message == "odometry":
+        if self.pose_message == "odometry":
             self._enqueue(self._encoder.odometry(pose, usec), Priority.POSE, expires)
         else:
             self._enqueue(self._encoder.vision_position_estimate(pose, usec), Priority.POSE, expires)
@@ -452,6 +453,16 @@ class MavLink:
                 self._pose_base = "local"
                 log.warning("no TIMESYNC answer from the autopilot: pose stamps stay in the companion's time base")
         return self._pose_base
+
+    @property
+    def pose_message(self) -> str:
+        """What poses go out as: "odometry" or "vision"; "auto" is ODOMETRY for PX4 (which ignores
+        VISION_SPEED_ESTIMATE), VISION_POSITION/SPEED_ESTIMATE for ArduPilot and unknown autopilots."""
+        kind = self.config.pose_message
+        if kind == "auto":
+            profile = self.profile
+            return "odometry" if profile is not None and profile.name == "px4" else "vision"
+        return kind
 
     @property
     def pose_time_base(self) -> str | None:

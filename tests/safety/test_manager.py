@@ -220,8 +220,13 @@ def test_autopilot_link_loss_stops_commands_until_it_returns() -> None:
     out = sm.step(healthy(5.1), 5.1)
     assert out.action is SafetyAction.NONE and out.allow_commands
     assert sm.filter(CLIMB, healthy(5.1), 5.1) == CLIMB
-    # No autopilot ever: nothing may be commanded.
-    assert SafetyManager().step(SafetyInputs(), 0.0).action is SafetyAction.STOP_COMMANDS
+    # No autopilot heard yet (the daemon starts first): nothing may be commanded, but it is not a lost
+    # link either -- no fault, no event for the GCS (issue #13: no ERROR at every start)
+    fresh = SafetyManager()
+    never = fresh.step(SafetyInputs(), 0.0)
+    assert not never.allow_commands and not never.allow_takeoff
+    assert Fault.AUTOPILOT_LOST not in never.faults and never.events == ()
+    assert fresh.filter(CLIMB, SafetyInputs(), 0.0) is None
 
 
 def test_critical_battery_beats_everything() -> None:
