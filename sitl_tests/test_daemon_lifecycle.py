@@ -32,9 +32,12 @@ async def test_daemon_flies_a_mission_and_stops_cleanly(tmp_path: Path, profile:
         assert ex.state is State.COMPLETED, [(a.action, a.result, a.message) for a in ex.results]
         await r.advance_until(lambda: not r.ap.armed, max_s=15.0)
         # what the autopilot actually received
-        vpe = r.received("VISION_POSITION_ESTIMATE")
+        # PX4 gets ODOMETRY (odometry = "auto": it ignores VISION_SPEED_ESTIMATE), ArduPilot VISION_*
+        pose_msg, stamp_field = ("ODOMETRY", "time_usec") if profile == "px4" else ("VISION_POSITION_ESTIMATE", "usec")
+        vpe = r.received(pose_msg)
         assert len(vpe) > 50
-        stamps = [m.fields["usec"] for m in vpe]
+        assert profile != "px4" or not r.received("VISION_SPEED_ESTIMATE")
+        stamps = [m.fields[stamp_field] for m in vpe]
         assert all(b > a for a, b in itertools.pairwise(stamps)), "poses must never be re-sent"
         assert r.received("SET_POSITION_TARGET_LOCAL_NED"), "the hover was flown with velocity setpoints"
         assert any(int(m.fields["command"]) == 400 for m in r.received("COMMAND_LONG")), "armed by the daemon"

@@ -769,6 +769,34 @@ class Daemon:
         self.mode_owner.claim()  # motion starts (even while airborne): the guided mode is ours to set
         self._event("mission-start", mission=mission.name, id=mission_id, actions=len(mission.actions))
 
+    def _active_executor(self, mission_id: str | None) -> Any:
+        ex = self.executor
+        if ex is None:
+            raise MissionError("no mission")
+        if mission_id is not None and mission_id != self.mission_id:
+            raise MissionError(f"mission '{mission_id}' is not the active one ('{self.mission_id}')")
+        return ex
+
+    def pause_mission(self, mission_id: str | None = None) -> None:
+        """Operator pause: the vehicle holds (autopilot hold mode); `resume_mission` continues."""
+        self._active_executor(mission_id).pause(self.clock.now())
+
+    def resume_mission(self, mission_id: str | None = None) -> None:
+        """Operator resume. After an operator pause the mission continues and the daemon switches the
+        autopilot back to its guided mode; during a safety hold it ends the hold (refused while the cause
+        persists) and the watchdog resumes the mission."""
+        ex = self._active_executor(mission_id)
+        if self.safety is not None and self._safety_view.last_action not in ("none", ""):
+            if not self.safety.operator_resume(self.clock.now()):
+                raise MissionError(f"resume refused: safety hold ({self._safety_view.last_action}) still needed")
+            return
+        ex.resume(self.clock.now())
+        self.mode_owner.claim()  # motion resumes: the guided mode is ours to set again
+
+    def abort_mission(self, mission_id: str | None = None) -> None:
+        """Operator abort: the mission ends, the vehicle holds where it is."""
+        self._active_executor(mission_id).abort(self.clock.now(), "operator abort")
+
     def takeoff_refusal(self) -> str | None:
         """Why arming / taking off must not happen now, or None when it may.
 
@@ -981,7 +1009,11 @@ class Daemon:
             elif request.kind is RequestKind.LAND:
                 await link.land()
             elif request.kind is RequestKind.HOLD:
-                if link.state.armed and self._safety_view.last_action in ("none", ""):
+                # the daemon only takes the vehicle out of the mode it drives (guided): a pilot's LOITER or an
+                # autopilot failsafe's LAND is left alone
+                ours = link.profile is not None and link.state.mode in (link.profile.guided_mode,
+                                                                         link.profile.takeoff_mode)
+                if link.state.armed and ours and self._safety_view.last_action in ("none", ""):
                     with contextlib.suppress(CompanionError):
                         await self._hold()
                 return
@@ -1343,30 +1375,14 @@ class _Controller:
         mission = load_mission(path, limits=self._d.mission_limits)
         await self._d.start_mission(mission, mission_id)
 
-    def _executor(self, mission_id: str | None) -> Any:
-        ex = self._d.executor
-        if ex is None:
-            raise MissionError("no mission")
-        if mission_id is not None and mission_id != self._d.mission_id:
-            raise MissionError(f"mission '{mission_id}' is not the active one ('{self._d.mission_id}')")
-        return ex
-
     async def pause(self, mission_id: str | None) -> None:
-        self._executor(mission_id).pause(self._d.clock.now())
+        self._d.pause_mission(mission_id)
 
     async def resume(self, mission_id: str | None) -> None:
-        ex = self._executor(mission_id)
-        safety = self._d.safety
-        if safety is not None and self._d._safety_view.last_action not in ("none", ""):
-            # a safety hold: the operator's resume ends it (refused while its cause persists)
-            if not safety.operator_resume(self._d.clock.now()):
-                raise MissionError(f"resume refused: safety hold ({self._d._safety_view.last_action}) still needed")
-            return  # the watchdog resumes the mission when the hold ends
-        ex.resume(self._d.clock.now())
-        self._d.mode_owner.claim()  # motion resumes: the guided mode is ours to set again
+        self._d.resume_mission(mission_id)
 
     async def abort(self, mission_id: str | None) -> None:
-        self._executor(mission_id).abort(self._d.clock.now(), "operator abort")
+        self._d.abort_mission(mission_id)
 
 
 async def run_daemon(config: Any, config_path: Path | None = None, clock: Clock | None = None,
