@@ -605,20 +605,27 @@ def missing_files(config: CompanionConfig) -> list[str]:
     return [f"{key}: {value} does not exist" for key, value in named if value and not Path(value).exists()]
 
 
-def check_config_cli(path: str | Path) -> tuple[int, str]:
-    """For `companion check-config FILE`: (0, summary) if valid, else (2, the ConfigError message).
+def check_config_cli(path: str | Path, offline: bool = False) -> tuple[int, str]:
+    """For `companion check-config FILE`: (0, summary) if `companion run` would accept it, else (2, one line).
 
-    The summary lists, as warnings, files the configuration names that are not
-    on this machine (a config is often checked away from the drone).
+    The check is `companion.config_checks.validate_for_run`, the one `companion run` makes
+    before it starts (camera calibration parses, a real camera has one, a non-loopback API has
+    a token, the rack model loads, folders are writable, ...). `offline` (a configuration
+    checked away from the drone) checks the file alone and lists the files it names that are
+    not on this machine as warnings.
     """
+    from companion.config_checks import validate_for_run
+
     try:
         config = load_config(path)
+        if not offline:
+            validate_for_run(config)
     except ConfigError as exc:
-        return 2, f"{path}: invalid: {exc}"
+        return 2, f"{path}: invalid: {' '.join(str(exc).split())}"
     summary = (
-        f"{path}: ok (mavlink {config.mavlink.url}, profile {config.mavlink.profile}; "
+        f"{path}: ok{' (offline)' if offline else ''} (mavlink {config.mavlink.url}, profile {config.mavlink.profile}; "
         f"camera {config.camera.kind} {config.camera.width}x{config.camera.height}@{config.camera.fps:g}; "
         f"vision {config.vision.source}; api {config.api.bind}:{config.api.port})"
     )
-    warnings = [f"warning: {w}" for w in missing_files(config)]
+    warnings = [f"warning: {w}" for w in missing_files(config)] if offline else []
     return 0, "\n".join([summary, *warnings])
