@@ -132,7 +132,12 @@ def _cmd_mission(args: argparse.Namespace) -> int:
     if args.mission_command == "validate":
         from companion.mission import validate_cli
 
-        code, message = validate_cli(args.file)
+        limits = None  # the parser's defaults
+        if args.config:
+            from companion.config import mission_limits
+
+            limits = mission_limits(_load_config(Path(args.config)))  # the limits the daemon's upload check uses
+        code, message = validate_cli(args.file, limits)
         print(message, file=sys.stdout if code == 0 else sys.stderr)
         return int(code)
     from drivers.api import mission_cli
@@ -226,6 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     msub.required = True
     q = msub.add_parser("validate", help="validate a mission file (exit 0, or 2 naming line and field)")
     q.add_argument("file", metavar="FILE")
+    q.add_argument("--config", metavar="CONFIG", default=None,
+                   help="check against this configuration's ceiling, speed and geofence (default: built-in limits)")
     _add_api_subcommands(msub)
     p.set_defaults(handler=_cmd_mission)
 

@@ -578,7 +578,10 @@ def mission_limits(config: CompanionConfig) -> Any:
     """The `companion.mission.MissionLimits` a mission is validated against on this vehicle.
 
     ceiling_m = ``safety.ceiling_m``; max_speed_m_s = the lower of ``safety.max_speed_m_s`` and
-    ``mission.speed_limit_m_s``; every other limit keeps the parser's default.
+    ``mission.speed_limit_m_s``; the geofence box = ``safety.geofence_min_ned_m/max_ned_m``, with
+    rack-frame goals placed by ``rack`` (`RackConfig.T_ned_rack`); every other limit keeps the
+    parser's default. `companion mission validate --config` and the control API's upload check
+    both validate against this.
     """
     from companion.errors import InputError
     from companion.mission import MissionLimits
@@ -587,6 +590,9 @@ def mission_limits(config: CompanionConfig) -> Any:
         return MissionLimits(
             ceiling_m=config.safety.ceiling_m,
             max_speed_m_s=min(config.safety.max_speed_m_s, config.mission.speed_limit_m_s),
+            geofence_min_ned_m=config.safety.geofence_min_ned_m,
+            geofence_max_ned_m=config.safety.geofence_max_ned_m,
+            T_ned_rack=tuple(float(v) for v in config.rack.T_ned_rack.ravel()),
         )
     except InputError as exc:
         raise ConfigError(f"safety.ceiling_m: {exc}") from exc

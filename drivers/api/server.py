@@ -67,7 +67,9 @@ StatusProvider = Callable[[], "Mapping[str, Any] | Awaitable[Mapping[str, Any]]"
 def default_validator(limits: Any | None = None) -> Validator:
     """`companion.mission.parse_mission` as an upload validator (raises `MissionError`).
 
-    `limits`: the vehicle's `companion.mission.MissionLimits` (ceiling, speed, ...); None uses
+    `limits`: the vehicle's `companion.mission.MissionLimits` (ceiling, speed, geofence: the
+    daemon passes `companion.config.mission_limits(config)`, as `companion mission validate
+    --config` does, so an upload is refused with the line the offline check prints); None uses
     the parser's defaults, which need not match the configured safety limits.
     """
     from companion.mission import parse_mission
