@@ -336,8 +336,11 @@ class PinholeCamera:
         except InputError as exc:
             raise CameraError(f"{p}: {exc}") from exc
 
-    def to_yaml(self, path: str | os.PathLike[str]) -> None:
-        """Write the OpenCV calibration-file format that `from_yaml` and OpenCV read."""
+    def to_yaml(self, path: str | os.PathLike[str], extra: dict[str, str | int | float] | None = None) -> None:
+        """Write the OpenCV calibration-file format that `from_yaml` and OpenCV read.
+
+        `extra`: more top-level keys written after the camera (how it was calibrated, ...).
+        """
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
         try:
             fs.write("image_width", self.width)
@@ -345,5 +348,7 @@ class PinholeCamera:
             fs.write("camera_matrix", self.K)
             d = self.dist_coeffs if self.dist is not None else np.zeros(5)
             fs.write("distortion_coefficients", d.reshape(1, -1))
+            for key, value in (extra or {}).items():
+                fs.write(key, value)
         finally:
             fs.release()

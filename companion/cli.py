@@ -145,6 +145,12 @@ def _cmd_mission(args: argparse.Namespace) -> int:
     return int(mission_cli(args))
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from companion.calibration_cli import run_calibrate_cli
+
+    return run_calibrate_cli(args)
+
+
 def _cmd_status(args: argparse.Namespace) -> int:
     from drivers.api import status_cli
 
@@ -225,6 +231,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--offline", action="store_true",
                    help="check the file alone (away from the drone): missing files and devices are warnings")
     p.set_defaults(handler=_cmd_check_config)
+
+    p = sub.add_parser("calibrate", help="calibrate the camera from board views (folder, video or live camera)")
+    from companion.calibration_cli import add_calibrate_arguments
+
+    add_calibrate_arguments(p)
+    p.set_defaults(handler=_cmd_calibrate)
 
     p = sub.add_parser("mission", help="validate missions and talk to a running daemon")
     msub = p.add_subparsers(dest="mission_command", metavar="ACTION", parser_class=_Parser)
