@@ -8,6 +8,9 @@ constructed (also when code builds one directly), and every error is a
 `ConfigError` whose message starts with the key path, e.g.
 ``safety.battery_low_v: must be > 0, got -3``. Unknown keys are errors too.
 
+Relative paths of the input files a configuration names (``camera.calibration``,
+``camera.path``, ``rack.model``, ``api.token_file``) are relative to the file's folder.
+
 Units follow the key names (`_m`, `_s`, `_ms`, `_deg`, `_v`, `_pct`); angles
 are degrees here at the edge and become radians in the transforms this module
 returns (`MountConfig.T_body_cam`, `RackConfig.T_ned_rack`).
@@ -571,7 +574,27 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CompanionConfig:
         raise ConfigError(f"{p}: not UTF-8 text") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: TOML syntax error: {exc}") from exc
-    return parse_config(data, source=str(p))
+    return _relative_to(parse_config(data, source=str(p)), p.parent)
+
+
+# Input files a configuration names: relative paths are relative to the configuration file's folder.
+_FILE_KEYS = (("camera", "calibration"), ("camera", "path"), ("rack", "model"), ("api", "token_file"))
+
+
+def _relative_to(config: CompanionConfig, folder: Path) -> CompanionConfig:
+    """`config` with the relative input-file paths of `_FILE_KEYS` made relative to `folder`.
+
+    So `camera.calibration = "camera.yaml"` next to the configuration is found whatever the
+    working directory (systemd starts the daemon in /var/lib/companion); the folders the daemon
+    writes (flight root, photos, uploads) stay relative to the working directory.
+    """
+    sections: dict[str, Any] = {}
+    for section_name, key in _FILE_KEYS:
+        section = sections.get(section_name, getattr(config, section_name))
+        value = getattr(section, key)
+        if value and not Path(value).is_absolute():
+            sections[section_name] = dataclasses.replace(section, **{key: str(folder / value)})
+    return dataclasses.replace(config, **sections) if sections else config
 
 
 def mission_limits(config: CompanionConfig) -> Any:

@@ -196,3 +196,17 @@ def test_offline_mode_checks_the_file_alone(files: Path) -> None:
     result = _check_config("--offline", str(path))
     assert result.returncode == 0
     assert result.stdout.splitlines()[1] == f"warning: camera.calibration: {files}/nope.yaml does not exist"
+
+
+def test_relative_files_are_relative_to_the_config(files: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+    path = _bad_config(files, {"rack": 'model = "rack.toml"'}, 'kind = "v4l2"\ncalibration = "camera.yaml"')
+    (files / "rack.toml").write_text(RACK_TOML)
+    elsewhere = tmp_path_factory.mktemp("cwd")
+    result = subprocess.run([sys.executable, "-m", "companion.cli", "check-config", str(path)], cwd=elsewhere,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    config = load_config(path)
+    assert config.camera.calibration == str(files / "camera.yaml") and config.rack.model == str(files / "rack.toml")
+    (files / "rack.toml").unlink()
+    with pytest.raises(ConfigError, match=rf"^rack\.model: {files}/rack\.toml: file not found"):
+        validate_for_run(load_config(path))
