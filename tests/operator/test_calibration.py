@@ -159,6 +159,16 @@ def test_cli_on_a_video(tmp_path: Path, charuco_images: list[np.ndarray], capsys
     assert len(charuco_images) - 2 <= len(views) <= len(charuco_images)
     found = PinholeCamera.from_yaml(out)
     assert abs(found.fx / TRUE.fx - 1.0) < FOCAL_TOL and abs(found.fy / TRUE.fy - 1.0) < FOCAL_TOL
+    # the live path (--camera CONFIG) opens the configured source through drivers/camera the same way
+    config = tmp_path / "companion.toml"
+    config.write_text(f'[camera]\nkind = "video"\npath = "{video}"\npacing = "consumer"\n')
+    live_out = tmp_path / "live.yaml"
+    code = main(["calibrate", "--camera", str(config), "--board", "charuco", "--cols", "7", "--rows", "5",
+                 "--square-m", "0.04", "--marker-m", "0.03", "--views", "8", "--out", str(live_out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert len([line for line in captured.err.splitlines() if line.startswith("view ")]) == 8
+    assert "over 8 views" in captured.out and PinholeCamera.from_yaml(live_out).width == 640
 
 
 def test_cli_refusals(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
