@@ -33,6 +33,7 @@ __all__ = ["add_calibrate_arguments", "run_calibrate_cli"]
 # A frame of a video or the live camera is a new view when its board signature (centre, size,
 # tilt; see `_signature`) is at least this far from every kept view's.
 _NOVELTY = 0.08
+_FRAME_TIMEOUT_S = 5.0  # a source silent this long has ended (video) or is not delivering (camera)
 
 
 def add_calibrate_arguments(p: argparse.ArgumentParser) -> None:
@@ -137,8 +138,10 @@ async def _from_source(config: Any, collector: _Collector, views: int, max_secon
     clock = SystemClock()
     loop = asyncio.get_running_loop()
     deadline = clock.now() + max_seconds
+    seen = 0
     async with open_camera(config, clock) as camera:
-        async for frame in camera.frames(timeout_s=5.0):
+        async for frame in camera.frames(timeout_s=_FRAME_TIMEOUT_S):
+            seen += 1
             if frame.seq % max(1, step):
                 continue
             name = f"frame {frame.seq}"
@@ -146,6 +149,9 @@ async def _from_source(config: Any, collector: _Collector, views: int, max_secon
             await loop.run_in_executor(None, collector.offer, np.asarray(frame.image), name, False)
             if len(collector.views) >= views or clock.now() > deadline:
                 break
+    if seen == 0:
+        where = config.device if config.kind == "v4l2" else config.path
+        raise CompanionError(f"camera: no frame from {config.kind} {where} within {_FRAME_TIMEOUT_S:g} s")
 
 
 def _write_yaml(path: Path, result: CalibrationResult, board: BoardSpec, names: list[str]) -> None:
