@@ -233,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=_cmd_check_config)
 
     p = sub.add_parser("calibrate", help="calibrate the camera from board views (folder, video or live camera)")
-    from companion.calibration_cli import add_calibrate_arguments
+    from companion.calibration_args import add_calibrate_arguments
 
     add_calibrate_arguments(p)
     p.set_defaults(handler=_cmd_calibrate)
