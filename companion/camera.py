@@ -32,6 +32,44 @@ def _pad_distortion(dist: FloatArray) -> FloatArray:
     return out
 
 
+def _cv_error_detail(exc: BaseException | None) -> str:
+    """The useful tail of an OpenCV error ("(3): Incorrect indentation"), one line."""
+    msg = " ".join(str(getattr(exc, "msg", "") or exc or "").split())
+    if "in function" in msg:
+        msg = msg.split("in function", 1)[1].strip(" '")
+    return msg or "syntax error"
+
+
+def _number_node(node: Any) -> float | None:
+    """A FileNode's number, or None when it is missing or not a number."""
+    return float(node.real()) if node.isInt() or node.isReal() else None
+
+
+def _matrix_node(node: Any, path: Path, key: str) -> FloatArray | None:
+    """A matrix FileNode as float64: an !!opencv-matrix, or a ROS ``{rows, cols, data}`` map.
+
+    None when the key is absent; `CameraError` naming `key` when it is there but unreadable.
+    """
+    if node.empty() or node.isNone():
+        return None
+    if node.isMap() and node.getNode("data").isSeq() and not node.getNode("dt").isString():
+        data = node.getNode("data")
+        values = [_number_node(data.at(i)) for i in range(data.size())]
+        rows, cols = _number_node(node.getNode("rows")), _number_node(node.getNode("cols"))
+        if any(v is None for v in values) or rows is None or cols is None or rows * cols != len(values):
+            raise CameraError(f"{path}: {key}: data must hold rows x cols numbers")
+        return np.array(values, dtype=np.float64).reshape(int(rows), int(cols))
+    if node.isSeq():  # a plain list of numbers (distortion written by hand)
+        values = [_number_node(node.at(i)) for i in range(node.size())]
+        if any(v is None for v in values):
+            raise CameraError(f"{path}: {key}: must be numbers")
+        return np.array(values, dtype=np.float64)
+    mat = node.mat()
+    if mat is None:
+        raise CameraError(f"{path}: {key}: not a matrix (!!opencv-matrix or rows/cols/data)")
+    return np.asarray(mat, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """A calibrated camera: image size (px), intrinsics (px) and OpenCV distortion."""
@@ -228,28 +266,60 @@ class PinholeCamera:
     # ------------------------------------------------------------------ files
     @classmethod
     def from_yaml(cls, path: str | os.PathLike[str]) -> PinholeCamera:
-        """Load an OpenCV calibration file (camera_matrix, distortion_coefficients, size)."""
+        """Load a calibration file: OpenCV FileStorage YAML/XML or ROS `camera_info` YAML.
+
+        OpenCV: ``camera_matrix`` (3x3 !!opencv-matrix), ``distortion_coefficients``,
+        ``image_width``, ``image_height`` (what `to_yaml` and OpenCV's calibration sample
+        write). ROS (camera_calibration's ost.yaml): the same keys with ``rows``/``cols``/
+        ``data`` maps and ``distortion_model`` plumb_bob or rational_polynomial, whose
+        coefficients are OpenCV's (k1, k2, p1, p2, k3[, k4, k5, k6]). Anything else raises
+        one-line `CameraError` naming the file and the key.
+        """
         p = Path(path)
         if not p.is_file():
             raise CameraError(f"{p}: calibration file not found")
         try:
-            fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as exc:
-            raise CameraError(f"{p}: not an OpenCV calibration file ({exc.msg})") from exc
+            raw = p.read_bytes()
+        except OSError as exc:
+            raise CameraError(f"{p}: cannot read ({exc.strerror or exc})") from exc
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise CameraError(f"{p}: not a calibration file (not UTF-8 text)") from None
+        stripped = text.lstrip()
+        if not stripped:
+            raise CameraError(f"{p}: empty calibration file")
+        if not stripped.startswith(("%YAML", "<?xml", "<opencv_storage")):
+            # ROS and hand-written YAML have no "%YAML:1.0" directive; OpenCV's parser needs one.
+            text = "%YAML:1.0\n" + text
+        try:
+            # cv2 reports some syntax errors as SystemError (an exception set inside the binding).
+            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+        except (cv2.error, SystemError) as exc:
+            cause = exc if isinstance(exc, cv2.error) else exc.__cause__
+            detail = _cv_error_detail(cause)
+            raise CameraError(f"{p}: not an OpenCV or ROS calibration YAML ({detail})") from None
         try:
             if not fs.isOpened():
-                raise CameraError(f"{p}: cannot be opened as an OpenCV YAML/XML file")
-            K = fs.getNode("camera_matrix").mat()
+                raise CameraError(f"{p}: cannot be opened as an OpenCV or ROS calibration YAML")
+            K = _matrix_node(fs.getNode("camera_matrix"), p, "camera_matrix")
             if K is None or K.shape != (3, 3):
-                raise CameraError(f"{p}: camera_matrix must be a 3x3 !!opencv-matrix")
-            width = fs.getNode("image_width").real()
-            height = fs.getNode("image_height").real()
-            if not width or not height:
-                raise CameraError(f"{p}: image_width and image_height are required")
-            dnode = fs.getNode("distortion_coefficients")
-            d = None if dnode.empty() else dnode.mat()
+                raise CameraError(f"{p}: camera_matrix: required, a 3x3 matrix")
+            width = _number_node(fs.getNode("image_width"))
+            height = _number_node(fs.getNode("image_height"))
+            if width is None or height is None or width != int(width) or height != int(height):
+                raise CameraError(f"{p}: image_width and image_height: required (whole numbers of pixels)")
+            model_node = fs.getNode("distortion_model")
+            model = model_node.string() if model_node.isString() else ""
+            if model not in ("", "plumb_bob", "rational_polynomial"):
+                raise CameraError(
+                    f"{p}: distortion_model: {model!r} is not supported (plumb_bob or rational_polynomial)"
+                )
+            d = _matrix_node(fs.getNode("distortion_coefficients"), p, "distortion_coefficients")
         finally:
             fs.release()
+        if not np.all(np.isfinite(K)):
+            raise CameraError(f"{p}: camera_matrix: must be finite numbers")
         if abs(K[1, 0]) > 1e-12 or abs(K[2, 0]) > 1e-12 or abs(K[2, 1]) > 1e-12 or abs(K[2, 2] - 1) > 1e-12:
             raise CameraError(f"{p}: camera_matrix must be upper triangular with K[2,2] = 1")
         try:
@@ -266,8 +336,11 @@ class PinholeCamera:
         except InputError as exc:
             raise CameraError(f"{p}: {exc}") from exc
 
-    def to_yaml(self, path: str | os.PathLike[str]) -> None:
-        """Write the OpenCV calibration-file format that `from_yaml` and OpenCV read."""
+    def to_yaml(self, path: str | os.PathLike[str], extra: dict[str, str | int | float] | None = None) -> None:
+        """Write the OpenCV calibration-file format that `from_yaml` and OpenCV read.
+
+        `extra`: more top-level keys written after the camera (how it was calibrated, ...).
+        """
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
         try:
             fs.write("image_width", self.width)
@@ -275,5 +348,7 @@ class PinholeCamera:
             fs.write("camera_matrix", self.K)
             d = self.dist_coeffs if self.dist is not None else np.zeros(5)
             fs.write("distortion_coefficients", d.reshape(1, -1))
+            for key, value in (extra or {}).items():
+                fs.write(key, value)
         finally:
             fs.release()

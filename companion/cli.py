@@ -5,8 +5,9 @@ Subcommands (DESIGN.md "Command line")::
     companion sim [--mission FILE] [--autopilot ardupilot|px4] [--fault SPEC]... [--headless] [--out DIR]
     companion fake-autopilot --listen URL [--profile ardupilot|px4]
     companion run --config FILE
-    companion check-config FILE
-    companion mission validate FILE
+    companion check-config [--offline] FILE
+    companion calibrate (--camera CONFIG | --images DIR | --video FILE) --board ... --out FILE.yaml
+    companion mission validate FILE [--config FILE]
     companion mission upload|list|start|pause|resume|abort|status ...
     companion status
     companion replay FOLDER
@@ -106,7 +107,7 @@ def _load_config(path: Path) -> Any:
 def _cmd_check_config(args: argparse.Namespace) -> int:
     from companion.config import check_config_cli
 
-    code, message = check_config_cli(args.file)
+    code, message = check_config_cli(args.file, offline=bool(args.offline))
     print(message, file=sys.stdout if code == 0 else sys.stderr)
     return int(code)
 
@@ -120,6 +121,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if not path.is_file():
         raise InputError(f"{path}: no such file (pass --config FILE)")
     config = _load_config(path)
+    from companion.config_checks import validate_for_run
+
+    validate_for_run(config)  # what check-config checks, before any flight folder is made
     _setup_logging(args.verbose)
     return asyncio.run(run_daemon(config, config_path=path, record_frames=True if args.record_frames else None))
 
@@ -128,12 +132,23 @@ def _cmd_mission(args: argparse.Namespace) -> int:
     if args.mission_command == "validate":
         from companion.mission import validate_cli
 
-        code, message = validate_cli(args.file)
+        limits = None  # the parser's defaults
+        if args.config:
+            from companion.config import mission_limits
+
+            limits = mission_limits(_load_config(Path(args.config)))  # the limits the daemon's upload check uses
+        code, message = validate_cli(args.file, limits)
         print(message, file=sys.stdout if code == 0 else sys.stderr)
         return int(code)
     from drivers.api import mission_cli
 
     return int(mission_cli(args))
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from companion.calibration_cli import run_calibrate_cli
+
+    return run_calibrate_cli(args)
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -213,15 +228,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=1)
     p.set_defaults(handler=_cmd_run)
 
-    p = sub.add_parser("check-config", help="validate a configuration file")
+    p = sub.add_parser("check-config", help="check a configuration as `companion run` does (exit 0, or 2 + the key)")
     p.add_argument("file", metavar="FILE")
+    p.add_argument("--offline", action="store_true",
+                   help="check the file alone (away from the drone): missing files and devices are warnings")
     p.set_defaults(handler=_cmd_check_config)
+
+    p = sub.add_parser("calibrate", help="calibrate the camera from board views (folder, video or live camera)")
+    from companion.calibration_args import add_calibrate_arguments
+
+    add_calibrate_arguments(p)
+    p.set_defaults(handler=_cmd_calibrate)
 
     p = sub.add_parser("mission", help="validate missions and talk to a running daemon")
     msub = p.add_subparsers(dest="mission_command", metavar="ACTION", parser_class=_Parser)
     msub.required = True
     q = msub.add_parser("validate", help="validate a mission file (exit 0, or 2 naming line and field)")
     q.add_argument("file", metavar="FILE")
+    q.add_argument("--config", metavar="CONFIG", default=None,
+                   help="check against this configuration's ceiling, speed and geofence (default: built-in limits)")
     _add_api_subcommands(msub)
     p.set_defaults(handler=_cmd_mission)
 

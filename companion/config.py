@@ -8,6 +8,9 @@ constructed (also when code builds one directly), and every error is a
 `ConfigError` whose message starts with the key path, e.g.
 ``safety.battery_low_v: must be > 0, got -3``. Unknown keys are errors too.
 
+Relative paths of the input files a configuration names (``camera.calibration``,
+``camera.path``, ``rack.model``, ``api.token_file``) are relative to the file's folder.
+
 Units follow the key names (`_m`, `_s`, `_ms`, `_deg`, `_v`, `_pct`); angles
 are degrees here at the edge and become radians in the transforms this module
 returns (`MountConfig.T_body_cam`, `RackConfig.T_ned_rack`).
@@ -580,14 +583,37 @@ def load_config(path: str | Path = DEFAULT_CONFIG_PATH) -> CompanionConfig:
         raise ConfigError(f"{p}: not UTF-8 text") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: TOML syntax error: {exc}") from exc
-    return parse_config(data, source=str(p))
+    return _relative_to(parse_config(data, source=str(p)), p.parent)
+
+
+# Input files a configuration names: relative paths are relative to the configuration file's folder.
+_FILE_KEYS = (("camera", "calibration"), ("camera", "path"), ("rack", "model"), ("api", "token_file"))
+
+
+def _relative_to(config: CompanionConfig, folder: Path) -> CompanionConfig:
+    """`config` with the relative input-file paths of `_FILE_KEYS` made relative to `folder`.
+
+    So `camera.calibration = "camera.yaml"` next to the configuration is found whatever the
+    working directory (systemd starts the daemon in /var/lib/companion); the folders the daemon
+    writes (flight root, photos, uploads) stay relative to the working directory.
+    """
+    sections: dict[str, Any] = {}
+    for section_name, key in _FILE_KEYS:
+        section = sections.get(section_name, getattr(config, section_name))
+        value = getattr(section, key)
+        if value and not Path(value).is_absolute():
+            sections[section_name] = dataclasses.replace(section, **{key: str(folder / value)})
+    return dataclasses.replace(config, **sections) if sections else config
 
 
 def mission_limits(config: CompanionConfig) -> Any:
     """The `companion.mission.MissionLimits` a mission is validated against on this vehicle.
 
     ceiling_m = ``safety.ceiling_m``; max_speed_m_s = the lower of ``safety.max_speed_m_s`` and
-    ``mission.speed_limit_m_s``; every other limit keeps the parser's default.
+    ``mission.speed_limit_m_s``; the geofence box = ``safety.geofence_min_ned_m/max_ned_m``, with
+    rack-frame goals placed by ``rack`` (`RackConfig.T_ned_rack`); every other limit keeps the
+    parser's default. `companion mission validate --config` and the control API's upload check
+    both validate against this.
     """
     from companion.errors import InputError
     from companion.mission import MissionLimits
@@ -596,6 +622,9 @@ def mission_limits(config: CompanionConfig) -> Any:
         return MissionLimits(
             ceiling_m=config.safety.ceiling_m,
             max_speed_m_s=min(config.safety.max_speed_m_s, config.mission.speed_limit_m_s),
+            geofence_min_ned_m=config.safety.geofence_min_ned_m,
+            geofence_max_ned_m=config.safety.geofence_max_ned_m,
+            T_ned_rack=tuple(float(v) for v in config.rack.T_ned_rack.ravel()),
         )
     except InputError as exc:
         raise ConfigError(f"safety.ceiling_m: {exc}") from exc
@@ -614,20 +643,27 @@ def missing_files(config: CompanionConfig) -> list[str]:
     return [f"{key}: {value} does not exist" for key, value in named if value and not Path(value).exists()]
 
 
-def check_config_cli(path: str | Path) -> tuple[int, str]:
-    """For `companion check-config FILE`: (0, summary) if valid, else (2, the ConfigError message).
+def check_config_cli(path: str | Path, offline: bool = False) -> tuple[int, str]:
+    """For `companion check-config FILE`: (0, summary) if `companion run` would accept it, else (2, one line).
 
-    The summary lists, as warnings, files the configuration names that are not
-    on this machine (a config is often checked away from the drone).
+    The check is `companion.config_checks.validate_for_run`, the one `companion run` makes
+    before it starts (camera calibration parses, a real camera has one, a non-loopback API has
+    a token, the rack model loads, folders are writable, ...). `offline` (a configuration
+    checked away from the drone) checks the file alone and lists the files it names that are
+    not on this machine as warnings.
     """
+    from companion.config_checks import validate_for_run
+
     try:
         config = load_config(path)
+        if not offline:
+            validate_for_run(config)
     except ConfigError as exc:
-        return 2, f"{path}: invalid: {exc}"
+        return 2, f"{path}: invalid: {' '.join(str(exc).split())}"
     summary = (
-        f"{path}: ok (mavlink {config.mavlink.url}, profile {config.mavlink.profile}; "
+        f"{path}: ok{' (offline)' if offline else ''} (mavlink {config.mavlink.url}, profile {config.mavlink.profile}; "
         f"camera {config.camera.kind} {config.camera.width}x{config.camera.height}@{config.camera.fps:g}; "
         f"vision {config.vision.source}; api {config.api.bind}:{config.api.port})"
     )
-    warnings = [f"warning: {w}" for w in missing_files(config)]
+    warnings = [f"warning: {w}" for w in missing_files(config)] if offline else []
     return 0, "\n".join([summary, *warnings])

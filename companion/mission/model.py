@@ -39,6 +39,9 @@ class Frame(enum.StrEnum):
     RACK = "rack"  # pipe-rack frame: pipes along +y on z = 0, z up (m)
 
 
+_SITE_FIELDS = ("geofence_min_ned_m", "geofence_max_ned_m", "T_ned_rack")
+
+
 @dataclass(frozen=True)
 class MissionLimits:
     """Vehicle and site limits a mission is checked against before flight.
@@ -53,6 +56,10 @@ class MissionLimits:
     min_yaw_threshold_rad, max_yaw_threshold_rad: allowed range of yaw thresholds (rad).
     max_settle_s: upper bound of the settle time a goal must be held (s).
     max_actions: most actions in one mission.
+    geofence_min_ned_m, geofence_max_ned_m: the configured NED box (m, the safety manager's
+        ``safety.geofence_*``) every goal position must lie in, or None (no box).
+    T_ned_rack: the rack placement (4x4 row-major, 16 numbers) rack-frame goals are mapped to
+        NED with for the geofence check; None = `frames.default_T_ned_rack()`.
     """
 
     max_speed_m_s: float = 1.0
@@ -67,9 +74,14 @@ class MissionLimits:
     max_yaw_threshold_rad: float = math.radians(90.0)
     max_settle_s: float = 30.0
     max_actions: int = 1000
+    geofence_min_ned_m: tuple[float, float, float] | None = None
+    geofence_max_ned_m: tuple[float, float, float] | None = None
+    T_ned_rack: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         for f in fields(self):
+            if f.name in _SITE_FIELDS:
+                continue
             value = getattr(self, f.name)
             if not math.isfinite(float(value)) or value <= 0:
                 raise InputError(f"MissionLimits.{f.name} must be finite and > 0, got {value!r}")
@@ -79,6 +91,18 @@ class MissionLimits:
             raise InputError("MissionLimits.min_threshold_m must not exceed max_threshold_m")
         if self.min_yaw_threshold_rad > self.max_yaw_threshold_rad:
             raise InputError("MissionLimits.min_yaw_threshold_rad must not exceed max_yaw_threshold_rad")
+        lo, hi = self.geofence_min_ned_m, self.geofence_max_ned_m
+        if (lo is None) != (hi is None):
+            raise InputError("MissionLimits.geofence_min_ned_m / geofence_max_ned_m: give both or neither")
+        if lo is not None and hi is not None:
+            if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(v) for v in (*lo, *hi)):
+                raise InputError("MissionLimits.geofence_min_ned_m / geofence_max_ned_m: three finite numbers each")
+            if any(a >= b for a, b in zip(lo, hi, strict=True)):
+                raise InputError("MissionLimits.geofence_min_ned_m must be below geofence_max_ned_m on every axis")
+        if self.T_ned_rack is not None and (
+            len(self.T_ned_rack) != 16 or not all(math.isfinite(v) for v in self.T_ned_rack)
+        ):
+            raise InputError("MissionLimits.T_ned_rack: 16 finite numbers (4x4 row-major)")
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,7 @@ from companion.mission.model import (
     TakePhoto,
 )
 from companion.mission.schema import MISSION_XSD
+from companion.mission.site import check_geofence
 
 __all__ = [
     "DEFAULT_SETTLE_S",
@@ -435,7 +436,7 @@ def _build_mission(root: etree._Element, source: str, limits: MissionLimits) -> 
             raise e.error("id", f"duplicate id '{action.id}' (first used on line {first_line[action.id]})")
         first_line[action.id] = action.line
         actions.append(action)
-    return Mission(
+    mission = Mission(
         name=h.text("name") or "",
         frame=frame,
         timeout_s=timeout_s,
@@ -448,6 +449,8 @@ def _build_mission(root: etree._Element, source: str, limits: MissionLimits) -> 
         actions=tuple(actions),
         source_name=source,
     )
+    check_geofence(mission)  # the configured site box, the same line offline and at upload
+    return mission
 
 
 def parse_mission(

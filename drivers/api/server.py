@@ -25,15 +25,15 @@ import inspect
 import json
 import logging
 import os
-import stat
 from collections.abc import Awaitable, Callable, Mapping
-from pathlib import Path
 from types import TracebackType
 from typing import Any, Protocol
 
 from aiohttp import BodyPartReader, web
 
-from companion.config import ApiConfig, is_loopback_address
+from companion.config import ApiConfig
+from companion.config_checks import api_token
+from companion.config_checks import read_token_file as read_token_file  # re-exported by drivers.api
 from companion.errors import CompanionError, ConfigError, MissionError
 from drivers.api.store import MissionStore, is_valid_id, mission_id_from_name
 
@@ -67,7 +67,9 @@ StatusProvider = Callable[[], "Mapping[str, Any] | Awaitable[Mapping[str, Any]]"
 def default_validator(limits: Any | None = None) -> Validator:
     """`companion.mission.parse_mission` as an upload validator (raises `MissionError`).
 
-    `limits`: the vehicle's `companion.mission.MissionLimits` (ceiling, speed, ...); None uses
+    `limits`: the vehicle's `companion.mission.MissionLimits` (ceiling, speed, geofence: the
+    daemon passes `companion.config.mission_limits(config)`, as `companion mission validate
+    --config` does, so an upload is refused with the line the offline check prints); None uses
     the parser's defaults, which need not match the configured safety limits.
     """
     from companion.mission import parse_mission
@@ -77,25 +79,6 @@ def default_validator(limits: Any | None = None) -> Validator:
 
     return validate
 
-
-def read_token_file(path: str | os.PathLike[str]) -> str:
-    """The bearer token in `path` (whitespace stripped); `ConfigError` naming `api.token_file` otherwise.
-
-    The file must not be readable or writable by other users (chmod 600 or 640).
-    """
-    p = Path(path)
-    try:
-        mode = p.stat().st_mode
-        token = p.read_text(encoding="utf-8").strip()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"api.token_file: cannot read {p}: {exc}") from exc
-    if mode & stat.S_IROTH:
-        raise ConfigError(f"api.token_file: {p} is readable by other users (chmod 600)")
-    if mode & stat.S_IWOTH:
-        raise ConfigError(f"api.token_file: {p} is writable by other users (chmod 600)")
-    if len(token) < 16 or any(c.isspace() for c in token):
-        raise ConfigError(f"api.token_file: {p} must hold one token of at least 16 characters")
-    return token
 
 
 def _json_error(status: int, message: str, **headers: str) -> web.Response:
@@ -169,17 +152,10 @@ class ApiServer:
     def _load_token(self) -> str | None:
         if self._token_override is not None:
             return self._token_override
-        if self.config.token_file:
-            return read_token_file(self.config.token_file)
-        return None
+        return api_token(self.config)  # the rule `companion check-config` applies too
 
     async def start(self) -> None:
-        token = self._load_token()
-        if token is None and not is_loopback_address(self.config.bind):
-            raise ConfigError(
-                f"api.token_file: required when api.bind is not a loopback address (bind = {self.config.bind!r})"
-            )
-        self._token = token
+        self._token = self._load_token()
         self.store.ensure()
         app = web.Application(
             middlewares=[self._errors_middleware, self._auth_middleware],
@@ -204,7 +180,7 @@ class ApiServer:
             raise ConfigError(f"api.port: cannot bind {self.config.bind}:{self.config.port}: {exc}") from exc
         self._runner = runner
         self._port = int(runner.addresses[0][1])
-        _log.info("control API on %s (token %s)", self.url, "required" if token else "off, loopback only")
+        _log.info("control API on %s (token %s)", self.url, "required" if self._token else "off, loopback only")
 
     async def stop(self) -> None:
         runner, self._runner = self._runner, None

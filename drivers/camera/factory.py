@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from companion.camera import PinholeCamera
 from companion.clock import Clock
 from companion.config import CameraConfig
-from companion.errors import CameraError, InputError
+from companion.config_checks import camera_model_for, default_camera_model
+from companion.errors import CameraError, ConfigError
 from drivers.camera.base import CameraSource
 from drivers.camera.folder import ImageFolderCamera
 from drivers.camera.opencv import CaptureFactory, V4L2Camera, VideoFileCamera
 from drivers.camera.synthetic import PoseSource, Render, SyntheticCamera
 
-# DESIGN's example camera: 720x480 px with fx = fy = 630 px; other sizes scale it.
-_DEFAULT_WIDTH_PX = 720
-_DEFAULT_FOCAL_PX = 630.0
+__all__ = ["default_camera_model", "load_camera_model", "open_camera"]
 
 
 def open_camera(
@@ -78,38 +75,15 @@ def open_camera(
     raise CameraError(f"camera.kind: unknown kind {config.kind!r}")  # pragma: no cover - config validates
 
 
-def default_camera_model(width: int, height: int) -> PinholeCamera:
-    """DESIGN's example intrinsics scaled to `width` x `height` px (the synthetic camera's default)."""
-    focal_px = _DEFAULT_FOCAL_PX * width / _DEFAULT_WIDTH_PX
-    return PinholeCamera(width=width, height=height, fx=focal_px, fy=focal_px, cx=width / 2.0, cy=height / 2.0)
-
-
 def load_camera_model(config: CameraConfig) -> PinholeCamera:
-    """The calibrated camera for `config`.
+    """The calibrated camera for `config` (`companion.config_checks.camera_model_for`), `CameraError` if none.
 
-    From `config.calibration` (OpenCV YAML; a calibration made at another size
-    with the same aspect ratio is scaled), else from `config.intrinsics`
-    (fx, fy, cx, cy px, no distortion), else DESIGN's default intrinsics for
-    the synthetic camera. Real cameras without either raise `CameraError`.
+    From `config.calibration` (OpenCV or ROS YAML; a calibration made at another size with the
+    same aspect ratio is scaled), else from `config.intrinsics` (fx, fy, cx, cy px, no
+    distortion), else DESIGN's default intrinsics for the synthetic camera. Real cameras
+    without either raise `CameraError` naming ``camera.calibration``.
     """
-    if config.calibration:
-        path = Path(config.calibration)
-        try:
-            camera = PinholeCamera.from_yaml(path)
-        except (OSError, InputError, CameraError) as exc:
-            raise CameraError(f"camera.calibration: {exc}") from exc
-        if (camera.width, camera.height) == (config.width, config.height):
-            return camera
-        factor = config.width / camera.width
-        if abs(camera.height * factor - config.height) > 0.5:
-            raise CameraError(
-                f"camera.calibration: {path} is {camera.width}x{camera.height}, "
-                f"camera is {config.width}x{config.height} (different aspect ratio)"
-            )
-        return camera.scaled(factor)
-    if config.intrinsics is not None:
-        fx, fy, cx, cy = config.intrinsics
-        return PinholeCamera(width=config.width, height=config.height, fx=fx, fy=fy, cx=cx, cy=cy)
-    if config.kind == "synthetic":
-        return default_camera_model(config.width, config.height)
-    raise CameraError(f'camera.calibration: required for kind = "{config.kind}" (or set camera.intrinsics)')
+    try:
+        return camera_model_for(config)
+    except ConfigError as exc:
+        raise CameraError(str(exc)) from exc
