@@ -21,7 +21,7 @@ async def _poses_and_latencies(r: Rig) -> tuple[list[Any], SimRecord]:
     r.daemon.frame_observers.append(frames.append)
     await r.advance(2.0)
     record = SimRecord()
-    vpe = r.ap.received_of("VISION_POSITION_ESTIMATE")
+    vpe = r.ap.received_of("VISION_POSITION_ESTIMATE") or r.ap.received_of("ODOMETRY")
     assert r.daemon.link is not None
     base = r.daemon.link.pose_time_base
     assert base is not None
@@ -37,7 +37,7 @@ async def test_px4_gets_local_pose_stamps_by_default_and_the_sim_latency_matches
         sent, record = await _poses_and_latencies(r)
         assert len(sent) >= 15
         captured_usec = {round(f.capture_s * 1e6) for f in sent}
-        got = [int(m.fields["usec"]) for m in r.ap.received_of("VISION_POSITION_ESTIMATE")[-10:]]
+        got = [int(m.fields["time_usec"]) for m in r.ap.received_of("ODOMETRY")[-10:]]  # odometry = auto
         assert set(got) <= captured_usec  # our clock's capture time, unconverted
         assert len(record.latencies_ms) >= len(sent) - 2
         assert all(0.0 <= lat < 100.0 for lat in record.latencies_ms)

@@ -266,7 +266,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                     time_s=float(ev["time_s"]) - t0, kind=str(ev["kind"]), action=str(ev["action"]),
                     detail=str(ev["message"])))
             _collect_results(daemon, record, ap)
-            vpe = ap.received_of("VISION_POSITION_ESTIMATE")
+            vpe = ap.received_of("VISION_POSITION_ESTIMATE") or ap.received_of("ODOMETRY")  # PX4: ODOMETRY
             collect_frames(frames_seen, render, vpe, boot_s, record, speed,
                             stamp_base=link.pose_time_base or "autopilot")
     report, report_path, plot_path = finish_report(record, daemon, config, camera_model, out_dir, speed)
@@ -350,7 +350,8 @@ def collect_frames(frames_seen: list[Any], render: Any, vpe: list[Any], boot_s: 
     done = render.done_clock_s
     for msg in vpe:
         record.pose_message_stamps_s.append(float(msg.time_s))
-        stamp_s = float(msg.fields["usec"]) * 1e-6 + (boot_s if stamp_base == "autopilot" else 0.0)
+        usec = msg.fields["usec"] if "usec" in msg.fields else msg.fields["time_usec"]  # VISION_* or ODOMETRY
+        stamp_s = float(usec) * 1e-6 + (boot_s if stamp_base == "autopilot" else 0.0)
         fr = sent_by_stamp.get(round(stamp_s * 1e3))
         if fr is None:
             for k in (-1, 1):
