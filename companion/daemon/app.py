@@ -226,7 +226,8 @@ class Daemon:
         cfg = self.config
         root = self.options.flight_root or Path(cfg.logging.flight_root)
         try:
-            self.flight = FlightFolder.create(root, self.clock.now, self.options.flight_name)
+            photo_root = self.options.photo_folder or Path(cfg.mission.photo_folder)
+            self.flight = FlightFolder.create(root, self.clock.now, self.options.flight_name, photo_root=photo_root)
         except OSError as exc:
             raise ConfigError(f"logging.flight_root: cannot create a flight folder in {root}: {exc}") from exc
         self._event("daemon-starting", flight=str(self.flight.path), camera=cfg.camera.kind,

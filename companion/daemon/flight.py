@@ -125,11 +125,12 @@ def read_tum(path: Path) -> tuple[FloatArray, FloatArray]:
 class FlightFolder:
     """Creates and owns the files of one run's flight folder."""
 
-    def __init__(self, path: Path, clock_now: Any) -> None:
+    def __init__(self, path: Path, clock_now: Any, photo_root: Path | None = None) -> None:
         self.path = path
         self.path.mkdir(parents=True, exist_ok=True)
-        self.photos = self.path / "photos"
-        self.photos.mkdir(exist_ok=True)
+        # photos go to ``photo_root/<flight name>/`` (the config's mission.photo_folder) when given, else into
+        # the flight folder; created at the first photo
+        self.photos = (photo_root / path.name) if photo_root is not None else self.path / "photos"
         self.log = JsonlLog(self.path / "log.jsonl", clock_now)
         self.tum = TumWriter(self.path / "trajectory.tum")
         self.tlog_path = self.path / "flight.tlog"
@@ -137,7 +138,8 @@ class FlightFolder:
         self._frames_fh: TextIO | None = None
 
     @classmethod
-    def create(cls, root: Path, clock_now: Any, name: str | None = None) -> FlightFolder:
+    def create(cls, root: Path, clock_now: Any, name: str | None = None,
+               photo_root: Path | None = None) -> FlightFolder:
         """A new folder under `root` named by UTC wall time (``flight-YYYYmmdd-HHMMSS[-n]``) or `name`."""
         root.mkdir(parents=True, exist_ok=True)
         base = name or "flight-" + _dt.datetime.now(_dt.UTC).strftime("%Y%m%d-%H%M%S")
@@ -146,12 +148,14 @@ class FlightFolder:
         while path.exists():
             n += 1
             path = root / f"{base}-{n}"
-        return cls(path, clock_now)
+        return cls(path, clock_now, photo_root)
 
     def save_photo(self, image: Any, sidecar: dict[str, Any]) -> Path:
-        """Write ``photos/photo-NNNN.png`` and its JSON sidecar; returns the image path."""
+        """Write ``photo-NNNN.png`` (gray or BGR as the camera delivers it, full resolution) and its JSON
+        sidecar into the photo folder; returns the image path."""
         import cv2  # local: keeps the module importable for tools that never save photos
 
+        self.photos.mkdir(parents=True, exist_ok=True)
         self._photo_count += 1
         stem = f"photo-{self._photo_count:04d}"
         img_path = self.photos / f"{stem}.png"
