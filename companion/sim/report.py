@@ -76,6 +76,9 @@ class SimRecord:
     autopilot: str = ""
     faults: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    # what the autopilot did, from its own reports: (seconds since the mission start, mode, armed)
+    autopilot_modes: list[tuple[float, str, bool]] = field(default_factory=list)
+    failed_action: str = ""  # "action 9 servo 'p3-start' aborted: safety: land" when the mission did not complete
 
 
 def interpolate_positions(stamps_s: FloatArray, positions: FloatArray, query_s: FloatArray) -> FloatArray:
@@ -189,8 +192,29 @@ def build_report(record: SimRecord) -> dict[str, Any]:
                 for e in record.safety_events
             ],
         },
+        "autopilot_modes": [{"time_s": round(t, 2), "mode": m, "armed": a} for t, m, a in record.autopilot_modes],
+        "outcome": outcome_line(record),
         "notes": list(record.notes),
     }
+
+
+def outcome_line(record: SimRecord) -> str:
+    """One line: how the mission ended and why, what the safety manager and the autopilot did, with times."""
+    if record.mission_completed:
+        head = "completed"
+    else:
+        why = record.failed_action or "; ".join(record.notes) or record.mission_state
+        head = f"NOT completed ({record.mission_state}): {why}"
+    actions = [f"{e.action} at {e.time_s:.1f} s ({e.detail.split('(')[-1].rstrip(')')})"
+               for e in record.safety_events if e.kind == "action" and e.time_s >= 0.0]
+    modes = []
+    for k, (t, mode, armed) in enumerate(record.autopilot_modes):
+        if k and not armed and record.autopilot_modes[k - 1][2]:
+            modes.append(f"disarmed at {t:.1f} s")
+        elif not k or mode != record.autopilot_modes[k - 1][1]:
+            modes.append(f"{mode} at {t:.1f} s")
+    return (f"{head}; safety: {', '.join(actions) or 'no action'}; "
+            f"autopilot: {', '.join(modes) or 'no report'}")
 
 
 def plot_trajectory(record: SimRecord, path: Path, rack_outline_ned: list[FloatArray] | None = None) -> None:

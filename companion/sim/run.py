@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import math
 import sys
 import time
@@ -30,13 +29,20 @@ import numpy as np
 
 from companion.clock import Clock, SystemClock
 from companion.errors import CompanionError, InputError
-from companion.sim.report import ActionResult, SafetyEventRecord, SimRecord, build_report, plot_trajectory
+from companion.sim.flight_record import collect_frames, failed_action, finish_report, note_autopilot_mode
+from companion.sim.report import ActionResult, SafetyEventRecord, SimRecord
 
-__all__ = ["FAULT_KINDS", "FaultSpec", "SimOptions", "SimResult", "collect_frames", "parse_fault_spec", "run_sim",
-           "run_sim_cli", "sim_config"]
+__all__ = ["FAULT_KINDS", "FaultSpec", "SimOptions", "SimResult", "collect_frames", "failed_action", "finish_report",
+           "note_autopilot_mode", "parse_fault_spec", "run_sim", "run_sim_cli", "sim_config"]
 
-FAULT_KINDS = ("battery-sag", "battery-critical", "gcs-loss", "vision-loss", "link-loss", "camera-unplug", "ceiling")
+# every fault `companion fake-autopilot --fault` knows, plus the two injected at the camera
+FAULT_KINDS = ("battery-sag", "battery-critical", "gcs-loss", "vision-loss", "link-loss", "camera-unplug", "ceiling",
+               "message-loss", "latency", "corrupt", "command-reject", "vision-reject")
 CAMERA_FAULTS = ("vision-loss", "camera-unplug")
+# the example mission flies 1.3-1.5 m above the deck: an overhead structure 2.0 m above it leaves less than
+# safety.ceiling_clearance_m (1 m), so the ceiling fault visibly pushes the vehicle down (the fake's default
+# 3 m would change nothing)
+SIM_FAULT_PARAMS: dict[str, dict[str, Any]] = {"ceiling": {"height_m": 2.0}}
 
 
 @dataclass(frozen=True)
@@ -227,7 +233,8 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                     end = math.inf if f.duration_s is None else t0 + f.at_s + f.duration_s
                     render.windows.append((f.kind, t0 + f.at_s, end))
                 else:
-                    ap.schedule(Fault(f.kind, at_s=(t0 - boot_s) + f.at_s, duration_s=f.duration_s))
+                    ap.schedule(Fault(f.kind, at_s=(t0 - boot_s) + f.at_s, duration_s=f.duration_s,
+                                      **SIM_FAULT_PARAMS.get(f.kind, {})))
             if ready:
                 try:
                     await daemon.start_mission(mission, mission_path.stem)
@@ -248,6 +255,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                         print(line, file=out, flush=True)
                     else:
                         print("\r" + line, end="", file=out, flush=True)
+                note_autopilot_mode(record, elapsed, ap.mode, bool(ap.armed))
                 _collect_results(daemon, record, ap)
                 ex = daemon.executor
                 if ex is None or (ex.state in (State.COMPLETED, State.FAILED, State.ABORTED)
@@ -260,6 +268,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
             record.mission_completed = ex is not None and ex.state is State.COMPLETED
             if ex is not None and ex.state not in (State.COMPLETED, State.FAILED, State.ABORTED):
                 record.notes.append(f"timed out after {timeout_s:.0f} s")
+            record.failed_action = failed_action(ex)
             record.end_s = clock.now()
             for ev in daemon._safety_view.events:
                 record.safety_events.append(SafetyEventRecord(
@@ -272,30 +281,6 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     report, report_path, plot_path = finish_report(record, daemon, config, camera_model, out_dir, speed)
     return SimResult(record=record, report=report, report_path=report_path, plot_path=plot_path, frames=frames_seen)
 
-
-def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any, out_dir: Path, speed: float,
-                  extra: dict[str, Any] | None = None) -> tuple[dict[str, Any], Path, Path | None]:
-    """Build the report of a finished flight, write ``report.json`` and ``trajectory.png`` into `out_dir`."""
-    report = build_report(record)
-    nf = daemon.nav_filter
-    if nf is not None:
-        report["estimation"]["filter_counts"] = dict(nf.stats.counts)
-        report["estimation"]["reset_counter"] = int(nf.stats.reset_counter)
-    report["flight_folder"] = None if daemon.flight is None else str(daemon.flight.path)
-    report["camera"] = {"width": camera_model.width, "height": camera_model.height, "fps": config.camera.fps}
-    report["speed"] = speed
-    if speed != 1.0:
-        report["notes"].append(f"ran at {speed:g}x real time; rates are per simulated second, latencies in wall ms")
-    report.update(extra or {})
-    report_path = out_dir / "report.json"
-    report_path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    plot_path: Path | None = out_dir / "trajectory.png"
-    try:
-        plot_trajectory(record, out_dir / "trajectory.png", _rack_outline(config))
-    except Exception as exc:
-        record.notes.append(f"plot failed: {exc}")
-        plot_path = None
-    return report, report_path, plot_path
 
 
 def _visual_ground_z(config: Any, renderer: Any) -> float:
@@ -326,68 +311,6 @@ def _collect_results(daemon: Any, record: SimRecord, ap: Any) -> None:
                                            seconds=float(r.seconds), goal_ned_m=goal, true_error_m=err))
 
 
-def collect_frames(frames_seen: list[Any], render: Any, vpe: list[Any], boot_s: float, record: SimRecord,
-                    speed: float = 1.0, stamp_base: str = "autopilot") -> None:
-    """Estimates, frame stamps and capture -> autopilot-socket latencies (wall ms) from the daemon's frames.
-
-    A frame is "captured" when the renderer has finished the image (a real camera's frame exists once
-    read out); the latency ends when the VISION_POSITION_ESTIMATE carrying its stamp was read from the
-    autopilot's socket. Clock seconds are divided by `speed` to give wall time. `stamp_base` is the
-    link's pose time base (`MavLink.pose_time_base`): "autopilot" stamps count from the fake
-    autopilot's boot (`boot_s` on our clock), "local" ones are our clock's (PX4 by default).
-    """
-    sent_by_stamp: dict[int, Any] = {}
-    for fr in frames_seen:
-        record.frame_stamps_s.append(fr.capture_s)
-        nav = fr.nav
-        if bool(nav.ok):
-            record.est_stamps_s.append(float(nav.stamp_s))
-            record.est_positions_ned_m.append(np.asarray(nav.position_ned_m, dtype=np.float64).copy())
-            record.est_rotations.append(np.asarray(nav.T_ned_body, dtype=np.float64)[:3, :3].copy())
-            record.est_sources.append(str(nav.source))
-        if fr.sent:
-            sent_by_stamp[round(fr.capture_s * 1e3)] = fr
-    done = render.done_clock_s
-    for msg in vpe:
-        record.pose_message_stamps_s.append(float(msg.time_s))
-        usec = msg.fields["usec"] if "usec" in msg.fields else msg.fields["time_usec"]  # VISION_* or ODOMETRY
-        stamp_s = float(usec) * 1e-6 + (boot_s if stamp_base == "autopilot" else 0.0)
-        fr = sent_by_stamp.get(round(stamp_s * 1e3))
-        if fr is None:
-            for k in (-1, 1):
-                fr = sent_by_stamp.get(round(stamp_s * 1e3) + k)
-                if fr is not None:
-                    break
-        if fr is None:
-            continue
-        ready_s = done[fr.seq] if 0 <= fr.seq < len(done) else fr.capture_s
-        record.latencies_ms.append((float(msg.time_s) - ready_s) * 1e3 / speed)
-
-
-def _rack_outline(config: Any) -> list[Any]:
-    from companion.geometry import se3
-    from companion.sim.render import paper_rack_model
-
-    model = paper_rack_model()
-    if config.rack.model:
-        from companion.vision.rack import RackModel
-
-        model = RackModel.load(config.rack.model)
-    T = config.rack.T_ned_rack
-    outlines = []
-    for pipe in model.pipes():
-        start = np.asarray(pipe.start_m)
-        d = np.asarray(pipe.direction_unit)
-        side = np.cross(d, [0.0, 0.0, 1.0])
-        n = float(np.linalg.norm(side))
-        side = side / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
-        r = pipe.radius
-        end = start + d * pipe.length
-        corners = np.array([start - side * r, end - side * r, end + side * r, start + side * r])
-        outlines.append(se3.act(T, corners)[:, :2])
-    return outlines
-
-
 def run_sim_cli(options: SimOptions) -> int:
     """`companion sim`: run, print the key figures, exit 0 only if the mission completed."""
     t_wall = time.monotonic()
@@ -402,5 +325,6 @@ def run_sim_cli(options: SimOptions) -> int:
           f"poses {rep['pose_messages']['rate_hz']} Hz; latency p50 {lat['p50']} ms p99 {lat['p99']} ms")
     for note in rep.get("notes", []):
         print(f"note: {note}")
+    print(f"outcome: {rep['outcome']}")
     print(f"report: {result.report_path}" + (f", plot: {result.plot_path}" if result.plot_path else ""))
     return 0 if rep["mission"]["completed"] else 1

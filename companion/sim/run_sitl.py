@@ -58,7 +58,15 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     from companion.mission import State, load_mission
     from companion.sim.ardupilot_sitl import ArduPilotSitl, SitlError, SitlObserver, sitl_binary
     from companion.sim.render import FaultyRender, SceneRenderer
-    from companion.sim.run import SimResult, _collect_results, _progress_line, finish_report, sim_config
+    from companion.sim.run import (
+        SimResult,
+        _collect_results,
+        _progress_line,
+        failed_action,
+        finish_report,
+        note_autopilot_mode,
+        sim_config,
+    )
     from drivers.camera import load_camera_model
 
     binary = sitl_binary()
@@ -128,6 +136,7 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
                     if clock.now() - t0 - last_print >= 5.0:
                         last_print = clock.now() - t0
                         print(_progress_line(clock.now() - t0, daemon, truth), file=out, flush=True)
+                    note_autopilot_mode(record, clock.now() - t0, observer.mode, observer.armed)
                     _collect_results(daemon, record, truth_view)
                     ex = daemon.executor
                     if ex is None or (ex.state in (State.COMPLETED, State.FAILED, State.ABORTED)
@@ -138,6 +147,7 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
                 record.mission_completed = ex is not None and ex.state is State.COMPLETED
                 if ex is not None and ex.state not in (State.COMPLETED, State.FAILED, State.ABORTED):
                     record.notes.append(f"timed out after {timeout_s:.0f} s")
+                record.failed_action = failed_action(ex)
                 record.end_s = clock.now()
                 for ev in daemon._safety_view.events:
                     record.safety_events.append(SafetyEventRecord(
