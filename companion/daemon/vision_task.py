@@ -1,0 +1,149 @@
+"""The vision task: newest camera frame -> trackers (worker thread or inline) -> filter -> pose to the autopilot.
+
+The camera's lost / recovered callbacks land here too; `FrameRecord`s go to the frame observers."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from companion.daemon.pipeline import FrameInputs, Measurement
+from companion.daemon.state import DaemonState, FrameRecord
+from companion.errors import CameraError, CompanionError
+
+__all__ = ["VisionTask"]
+
+
+class VisionTask(DaemonState):
+    """The vision loop and what happens to each measured frame."""
+
+    def _on_camera_lost(self, reason: str) -> None:
+        self.camera_ok = False
+        self._event("camera-lost", level=logging.WARNING, reason=reason)
+
+    def _on_camera_recovered(self) -> None:
+        self.camera_ok = True
+        self._event("camera-recovered")
+
+    def _frame_inputs(self) -> FrameInputs:
+        link = self.link
+        state = link.state if link is not None else None
+        roll = pitch = 0.0
+        if state is not None and state.attitude_rpy_rad is not None:
+            roll, pitch = float(state.attitude_rpy_rad[0]), float(state.attitude_rpy_rad[1])
+        height = None
+        z_cam_body = float(self.T_body_cam[2, 3])
+        nf = self.nav_filter
+        use_range = bool(getattr(nf.config, "use_range", True)) if nf is not None else True
+        vg = self.visual_ground_z_ned_m
+        if vg is None and use_range and state is not None and state.rangefinder_m is not None:
+            height = float(state.rangefinder_m) * math.cos(roll) * math.cos(pitch) - z_cam_body
+        elif nf is not None:
+            est = nf.estimate_latest()
+            if math.isfinite(float(est.stamp_s)):
+                gz = float(getattr(nf.config, "ground_z_ned_m", 0.0)) if vg is None else float(vg)
+                height = gz - float(est.position_ned_m[2]) - z_cam_body
+        reset = None
+        if self._rack_reset_pending and nf is not None:
+            latest = nf.estimate_latest()
+            pos_std = math.sqrt(max(float(np.max(np.diag(np.asarray(latest.pose_covariance))[:3])), 0.0))
+            if math.isfinite(float(latest.stamp_s)) and pos_std < 0.3:
+                reset = np.asarray(latest.T_ned_body)
+                self._rack_reset_pending = False
+                self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std)
+        return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset)
+
+    async def _vision_loop(self) -> None:
+        assert self.pipeline is not None and self.camera is not None
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                frame = await self.camera.next_frame(timeout_s=0.25)
+            except CameraError as exc:
+                self._event("camera-error", level=logging.ERROR, error=str(exc))
+                self.camera_ok = False
+                await self.clock.sleep(0.5)
+                continue
+            if frame is None:
+                if getattr(self.camera, "ended", False):
+                    self._event("camera-ended", level=logging.WARNING)
+                    return
+                continue
+            prev = self._latest_frame
+            if prev is not None and float(frame.stamp_s) - float(prev.stamp_s) > self.frame_gap_reset_s:
+                # the tracker's own motion model is stale after a gap: restart it from the IMU-propagated filter
+                self._rack_reset_pending = True
+            self._latest_frame = frame
+            inputs = self._frame_inputs()
+            try:
+                if self._worker is None:
+                    m = self.pipeline.measure(frame.image, frame.stamp_s, frame.seq, inputs)
+                else:
+                    m = await loop.run_in_executor(self._worker, self.pipeline.measure, frame.image, frame.stamp_s,
+                                                   frame.seq, inputs)
+            except CompanionError as exc:
+                self.counters.vision_errors += 1
+                self._event("vision-error", level=logging.WARNING, error=str(exc))
+                continue
+            self._after_measure(frame, m)
+
+    def _after_measure(self, frame: Any, m: Measurement) -> None:
+        assert self.nav_filter is not None and self.pipeline is not None
+        self.counters.frames += 1
+        try:
+            nav = self.pipeline.fuse(m, self.nav_filter)
+        except CompanionError as exc:
+            self.counters.vision_errors += 1
+            self._event("fusion-error", level=logging.WARNING, error=str(exc))
+            return
+        self.last_nav = nav
+        fresh = bool(nav.ok) and abs(float(nav.stamp_s) - float(frame.stamp_s)) < 1e-6
+        if m.rack is not None:
+            # a rack pose the filter did not accept (gated) counts as a tracker failure too
+            accepted = m.rack_ok and fresh and str(nav.source) == "rack"
+            self._rack_fail_streak = 0 if accepted or (m.rack_ok and str(nav.source) != "rack") else \
+                self._rack_fail_streak + 1
+            if self._rack_fail_streak >= 2:
+                self._rack_reset_pending = True
+                self._rack_fail_streak = 0
+        sent = False
+        if fresh:
+            self.last_fresh_pose_s = float(frame.stamp_s)
+        if fresh and self._safety_view.send_poses and self.link is not None:
+            from drivers.mavlink import PoseOut
+
+            pose = PoseOut(
+                stamp_s=float(nav.stamp_s),
+                T_ned_body=np.asarray(nav.T_ned_body),
+                pose_covariance=np.asarray(nav.pose_covariance),
+                velocity_ned_m_s=np.asarray(nav.velocity_ned_m_s),
+                velocity_covariance=np.asarray(nav.velocity_covariance),
+                reset_counter=int(nav.reset_counter),
+            )
+            sent = bool(self.link.send_pose(pose))
+        if sent:
+            self.counters.poses_sent += 1
+            self.last_pose_sent_s = float(frame.stamp_s)
+            self._latency_ms.append((self.clock.now() - float(frame.stamp_s)) * 1e3)
+            if self.flight is not None:
+                self.flight.tum.write(float(nav.stamp_s), np.asarray(nav.T_ned_body))
+        else:
+            self.counters.poses_withheld += 1
+        if self._pending_photo is not None:
+            self._take_photo_now(frame, nav)
+        if self.record_frames and self.flight is not None:
+            with contextlib.suppress(OSError):
+                self.flight.save_frame(frame.image, int(frame.seq), float(frame.stamp_s))
+        record = FrameRecord(
+            seq=int(frame.seq), capture_s=float(frame.stamp_s), source_stamp_s=frame.source_stamp_s,
+            process_s=m.process_s, nav=nav, sent=sent, sent_s=self.clock.now(), sent_perf_s=time.perf_counter(),
+            measurement=m,
+        )
+        for obs in list(self.frame_observers):
+            obs(record)

@@ -1,0 +1,165 @@
+"""Building and opening what the daemon wires together: filter, safety manager, link, camera, vision pipeline."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.daemon.pipeline import VisionPipeline, rack_std_floor_from_config
+from companion.daemon.state import DaemonState
+from companion.errors import ConfigError
+
+__all__ = ["Wiring"]
+
+
+class Wiring(DaemonState):
+    """Construction (called by `Daemon.start`): each part from its config section."""
+
+    def _build_estimation(self) -> None:
+        from companion.config import build_dataclass
+        from companion.estimation import ImuSample, NavFilterConfig, NavigationFilter
+
+        params = dict(self.config.filter.params)
+        nav_cfg = build_dataclass(NavFilterConfig, params, "filter")
+        self.nav_filter = NavigationFilter(nav_cfg, T_ned_rack=self.T_ned_rack, T_body_cam=self.T_body_cam)
+        T0 = self.options.initial_T_ned_body
+        if T0 is not None:
+            self.nav_filter.initialize(self.clock.now(), T0)
+        self._imu_sample_cls = ImuSample
+
+    def _build_safety(self) -> None:
+        from companion.control.servo import ServoController, ServoGains
+        from companion.safety import SafetyConfig, SafetyManager
+
+        lim = self.config.safety
+        self.safety = SafetyManager(SafetyConfig(
+            ceiling_m=lim.ceiling_m,
+            min_ceiling_clearance_m=lim.ceiling_clearance_m if lim.ceiling_clearance_m > 0 else None,
+            battery_low_v=lim.battery_low_v,
+            battery_low_pct=lim.battery_low_pct,
+            battery_critical_v=lim.battery_critical_v,
+            battery_critical_pct=lim.battery_critical_pct,
+            battery_low_debounce_s=max(lim.battery_debounce_s, 1e-3),
+            gcs_timeout_s=lim.gcs_loss_hover_s if lim.gcs_loss_hover_s > 0 else None,
+            gcs_land_timeout_s=lim.gcs_loss_land_s if lim.gcs_loss_land_s > 0 else None,
+            vision_timeout_s=lim.vision_loss_hover_ms / 1000.0,
+            vision_land_timeout_s=lim.vision_loss_land_s if lim.vision_loss_land_s > 0 else None,
+            vision_auto_resume_s=lim.vision_resume_s if lim.vision_resume_s > 0 else None,
+            gcs_auto_resume_s=lim.gcs_resume_s if lim.gcs_resume_s > 0 else None,
+            geofence_min_ned_m=lim.geofence_min_ned_m,
+            geofence_max_ned_m=lim.geofence_max_ned_m,
+        ))
+        speed = min(lim.max_speed_m_s, self.config.mission.speed_limit_m_s)
+        self._servo = ServoController(ServoGains(max_speed_m_s=min(0.5, speed)))
+
+    def _link_config(self) -> Any:
+        from drivers.mavlink import LinkConfig
+
+        cfg = self.config
+        kwargs: dict[str, Any] = {
+            "url": cfg.mavlink.url,
+            "component_id": cfg.mavlink.component_id,
+            "system_id": cfg.mavlink.system_id or None,
+            "autopilot_profile": None if cfg.mavlink.profile == "auto" else cfg.mavlink.profile,
+            "autopilot_timeout_s": cfg.mavlink.heartbeat_timeout_s,
+            "command_timeout_s": cfg.mavlink.command_timeout_s,
+            "command_retries": cfg.mavlink.command_retries,
+            "request_sim_state": cfg.camera.kind == "synthetic" and self.options.pose_source is None,
+            "pose_message": {True: "odometry", False: "vision"}.get(cfg.mavlink.odometry, "auto"),
+            "pose_stamp_base": cfg.mavlink.pose_stamp_base,
+            "forward_urls": tuple(cfg.mavlink.gcs_forward),
+        }
+        if cfg.ekf_origin.enabled:
+            kwargs.update(origin_lat_deg=cfg.ekf_origin.lat_deg, origin_lon_deg=cfg.ekf_origin.lon_deg,
+                          origin_alt_m=cfg.ekf_origin.alt_m)
+        return LinkConfig(**kwargs)
+
+    async def _open_link(self) -> None:
+        from drivers.mavlink import MavLink
+
+        assert self.flight is not None
+        tlog = self.flight.tlog_path if self.config.mavlink.tlog else None
+        link = MavLink(self._link_config(), clock=self.clock, tlog_path=tlog)
+        await link.__aenter__()
+        self.link = link
+        self._unsubscribe.append(link.on_imu(self._on_imu))
+        self._unsubscribe.append(link.on_message(self._on_message))
+
+    def _truth_pose(self) -> tuple[float, FloatArray] | None:
+        link = self.link
+        if link is None:
+            return None
+        truth = link.state.sim_truth
+        if truth is None:
+            return None
+        return float(truth.stamp_s), np.asarray(truth.T_ned_body)
+
+    async def _open_camera(self) -> None:
+        from drivers.camera import load_camera_model, open_camera
+
+        cfg = self.config
+        self.camera_model = load_camera_model(cfg.camera)
+        if self.options.camera_source is not None:
+            self.camera = self.options.camera_source
+        else:
+            render = self.options.render
+            pose_source = self.options.pose_source
+            if cfg.camera.kind == "synthetic":
+                if render is None:
+                    render = self._default_render()
+                if pose_source is None:
+                    pose_source = self._truth_pose
+            source = open_camera(cfg.camera, self.clock, render=render, pose_source=pose_source)
+            await source.__aenter__()
+            self.camera = source
+        cam = self.camera
+        if hasattr(cam, "on_lost"):
+            cam.on_lost(self._on_camera_lost)
+            cam.on_recovered(self._on_camera_recovered)
+
+    def _default_render(self) -> Callable[[Any], Any]:
+        from companion.sim.render import SceneRenderer
+
+        if self.camera_model is None:
+            raise ConfigError("camera: no camera model for the synthetic renderer")
+        return SceneRenderer.from_config(self.config, self.camera_model)
+
+    def _rack_model(self) -> Any | None:
+        path = self.config.rack.model
+        if not path:
+            return None
+        from companion.vision.rack import RackModel
+
+        return RackModel.load(path)
+
+    def _build_pipeline(self) -> None:
+        from companion.config import build_dataclass
+
+        cfg = self.config
+        rack_cfg = None
+        ground_cfg = None
+        if cfg.vision.source in ("rack", "auto"):
+            from companion.vision.rack import RackTrackerConfig
+
+            rack_cfg = build_dataclass(RackTrackerConfig, dict(cfg.vision.rack_tracker), "vision.rack_tracker")
+        if cfg.vision.source in ("ground", "auto"):
+            from companion.vision.ground import GroundOdometerConfig
+
+            ground_cfg = build_dataclass(GroundOdometerConfig, dict(cfg.vision.ground_odometer),
+                                         "vision.ground_odometer")
+        assert self.camera_model is not None
+        self.pipeline = VisionPipeline(
+            source=cfg.vision.source,
+            camera=self.camera_model,
+            T_body_cam=self.T_body_cam,
+            T_ned_rack=self.T_ned_rack,
+            rack_model=self._rack_model(),
+            rack_config=rack_cfg,
+            ground_config=ground_cfg,
+            initial_T_ned_body=self.options.initial_T_ned_body,
+            rack_std_floor=rack_std_floor_from_config(cfg.vision),
+            rack_along_pipe_std_m=self.rack_along_pipe_std_m,
+        )
