@@ -32,7 +32,8 @@ def sitl_binary() -> Path | None:
     if env:
         p = Path(env)
         candidates.append(p / "arducopter" if p.is_dir() else p)
-    candidates.append(REPO.parent / "shared" / "ardupilot" / "arducopter")
+    # ../shared beside the repository; a git worktree (e.g. /work/wt/NAME) looks one level further up
+    candidates += [parent / "shared" / "ardupilot" / "arducopter" for parent in REPO.parents[:2]]
     for c in candidates:
         if c.is_file() and os.access(c, os.X_OK):
             return c
