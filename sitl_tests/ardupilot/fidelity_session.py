@@ -230,6 +230,19 @@ def _flag_sequence(peer: Peer, t_from: float, t_to: float) -> list[int]:
     return seq
 
 
+async def _disarm_time(peer: Peer, t_from: float, timeout_s: float) -> float | None:
+    """When the autopilot disarmed: its "Disarming motors" text (HEARTBEAT comes at 1 Hz only), else the
+    first disarmed HEARTBEAT."""
+    def seen() -> float | None:
+        texts = [tm for tm, m in peer.since(t_from, "STATUSTEXT") if m.text.startswith("Disarming motors")]
+        if texts:
+            return texts[0]
+        return peer.t() if not peer.armed() else None
+
+    found = await peer.wait(seen, timeout_s)
+    return None if found is None else float(found)
+
+
 async def _hover_height(peer: Peer) -> float:
     await peer.step()
     h = peer.height_m()
@@ -473,7 +486,7 @@ async def _session(peer: Peer, obs: dict[str, Any], long_dropout: bool) -> None:
         return peer.t() if h is not None and h < 0.05 else None
 
     touchdown = await peer.wait(touch, 20.0)
-    disarmed = await peer.wait(lambda: peer.t() if not peer.armed() else None, 20.0)
+    disarmed = await _disarm_time(peer, t_land, 20.0)
     await peer.run_for(1.0)
     mid = [(tm, h) for tm, h in samples if 0.2 <= h <= 0.7]
     rate = (mid[0][1] - mid[-1][1]) / (mid[-1][0] - mid[0][0]) if len(mid) >= 2 and mid[-1][0] > mid[0][0] else None
@@ -514,7 +527,7 @@ async def _long_dropout(peer: Peer) -> dict[str, Any]:
         None) if out["ekf_flags_during"] else None
     first_text = peer.since(t_drop, "STATUSTEXT")
     out["first_text_after_s"] = _r(first_text[0][0] - t_drop) if first_text else None
-    disarmed = await peer.wait(lambda: peer.t() if not peer.armed() else None, 20.0)
+    disarmed = await _disarm_time(peer, t_drop, 20.0)
     out["disarmed_after_s"] = _r(disarmed - t_drop) if disarmed else None
     out["texts"] = peer.texts(t_drop)
     out["landed_states"] = _landed_sequence(peer, t_drop)

@@ -34,6 +34,8 @@ from companion.sim.autopilot.config import (
 from companion.sim.autopilot.faults import Fault
 from companion.sim.autopilot.transport import open_transport
 
+TIMESYNC_PERIOD_S = 10.0  # ArduCopter SITL: a TIMESYNC request every 10.0 s
+
 __all__ = ["DEFAULT_RATES_HZ", "FakeAutopilot", "FakeAutopilotConfig", "ImuNoise", "ReceivedMessage", "Truth"]
 
 
@@ -66,6 +68,7 @@ class FakeAutopilot(Commands):
         self._streams = {name: Stream(self._interval(hz), self._boot_s) for name, hz in rates.items()}
         self._streams["HEARTBEAT"] = Stream(1.0, self._boot_s)
         self._gcs_next_s = self._boot_s
+        self._timesync_next_s = self._boot_s + TIMESYNC_PERIOD_S
         self._started = True
         self._task = asyncio.create_task(self._run(), name="fake-autopilot")
 
@@ -122,7 +125,7 @@ class FakeAutopilot(Commands):
     @property
     def landed_state(self) -> int:
         """MAV_LANDED_STATE now."""
-        return self._flight.landed_state(self._vehicle)
+        return self._flight.landed_state(self._vehicle, self.clock.now())
 
     @property
     def truth(self) -> Truth:
@@ -186,6 +189,7 @@ class FakeAutopilot(Commands):
         while True:
             now = self.clock.now()
             self._advance_physics(now)
+            self._check_home(now)
             self._flush_events()
             next_wake = now + 0.05
             for name, stream in self._streams.items():
@@ -205,6 +209,12 @@ class FakeAutopilot(Commands):
                     if self._gcs_next_s <= now:
                         self._gcs_next_s = now + 1.0
                 next_wake = min(next_wake, self._gcs_next_s)
+            if self.profile.name == "ardupilot":
+                if self._timesync_next_s <= now + 1e-9:
+                    # ArduPilot's own time-sync requests (tc1 = 0, ts1 = its time in ns), every 10 s
+                    self._send(self._mav.timesync_encode(0, round((now - self._boot_s) * 1e9)))
+                    self._timesync_next_s = max(self._timesync_next_s + TIMESYNC_PERIOD_S, now)
+                next_wake = min(next_wake, self._timesync_next_s)
             await self._sleep_or_wake(max(0.0, next_wake - now))
 
     async def _sleep_or_wake(self, seconds: float) -> None:

@@ -132,15 +132,20 @@ class Commands(Telemetry):
                 self._ack(command, rejection, msg)
             return
         flight, vehicle = self._flight, self._vehicle
+        ardupilot = self.profile.name == "ardupilot"
         result: int
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             force = math.isfinite(p[1]) and round(p[1]) == FORCE_MAGIC
-            if p[0] >= 0.5:
+            if ardupilot and p[0] not in (0.0, 1.0):
+                result = mavlink.MAV_RESULT_UNSUPPORTED  # ArduPilot: param1 must be exactly 0 or 1
+            elif p[0] >= 0.5:
                 result, _ = flight.arm(now_s, vehicle, force)
             else:
                 result, _ = flight.disarm(now_s, vehicle, force)
         elif command == mavlink.MAV_CMD_DO_SET_MODE:
             mode = self.profile.mode_from_do_set_mode(p[0], p[1], p[2])
+            if mode is None and ardupilot and math.isfinite(p[1]):
+                flight.events.append((mavlink.MAV_SEVERITY_WARNING, f"No such mode {int(p[1])}"))
             result = mavlink.MAV_RESULT_FAILED if mode is None else flight.set_mode(mode, now_s, vehicle)[0]
         elif command == mavlink.MAV_CMD_NAV_TAKEOFF:
             result, _ = flight.takeoff(self._takeoff_height(p[6]), now_s, vehicle)
@@ -176,7 +181,8 @@ class Commands(Telemetry):
     def _set_interval(self, msg_id: int, interval_us: float, now_s: float) -> int:
         name = self._message_name(msg_id)
         if name is None or (name not in self._streams):
-            return FAILED
+            # ArduPilot answers DENIED for a message it cannot stream (unknown id included)
+            return mavlink.MAV_RESULT_DENIED if self.profile.name == "ardupilot" else FAILED
         stream = self._streams[name]
         if interval_us < 0:
             stream.interval_s = 0.0
@@ -185,7 +191,10 @@ class Commands(Telemetry):
             rates.update(self.config.rates_hz or {})
             stream.interval_s = self._interval(rates.get(name, 1.0))
         else:
-            stream.interval_s = max(interval_us / 1e6, 1.0 / MAX_RATE_HZ)
+            interval_s = interval_us / 1e6
+            if self.profile.name == "ardupilot":
+                interval_s = max(round(interval_s * 1000.0), 1) / 1000.0  # ArduPilot keeps whole ms
+            stream.interval_s = max(interval_s, 1.0 / MAX_RATE_HZ)
         stream.next_due_s = now_s
         self._wake.set()
         return ACCEPTED
@@ -205,7 +214,8 @@ class Commands(Telemetry):
             return FAILED
         out = self._build(name, now_s)
         if out is None:
-            return FAILED
+            # ArduPilot accepts a known message it has nothing to send yet (e.g. HOME_POSITION before home)
+            return ACCEPTED if self.profile.name == "ardupilot" and name in self._streams else FAILED
         self._send(out)
         return ACCEPTED
 
@@ -275,7 +285,20 @@ class Commands(Telemetry):
 
     def _vision(self, now_s: float) -> None:
         if not self._active("vision-reject", now_s):
+            first = self._flight.ekf.last_vision_s is None
             self._flight.on_vision(now_s)
+            if first and self.profile.name == "ardupilot":
+                self._flight.events.append((mavlink.MAV_SEVERITY_INFO, "EKF3 IMU0 is using external nav data"))
+            self._check_home(now_s)
+
+    def _check_home(self, now_s: float) -> None:
+        """Home is set once the EKF has an origin and a position; ArduPilot then sends HOME_POSITION
+        (the SITL: 50 ms after the first vision pose, or after the origin if vision came first)."""
+        flight = self._flight
+        if not flight.home_set and self._origin is not None and flight.ekf.has_position(now_s):
+            flight.home_set = True
+            if self.profile.name == "ardupilot":
+                self._send_stream("HOME_POSITION", now_s)
 
     def _on_vision_position_estimate(self, msg: Any, now_s: float) -> None:
         if all(math.isfinite(x) for x in (msg.x, msg.y, msg.z)):
@@ -293,9 +316,11 @@ class Commands(Telemetry):
             return
         if self._origin is None:
             self._origin = (msg.latitude / 1e7, msg.longitude / 1e7, msg.altitude / 1000.0)
-            self._flight.events.append((mavlink.MAV_SEVERITY_INFO, "EKF origin set"))
+            text = "EKF3 IMU0 origin set" if self.profile.name == "ardupilot" else "EKF origin set"
+            self._flight.events.append((mavlink.MAV_SEVERITY_INFO, text))
         # Settable once: later requests only repeat the origin in use.
         self._send_stream("GPS_GLOBAL_ORIGIN", now_s)
+        self._check_home(now_s)
 
     def _on_ping(self, msg: Any, now_s: float) -> None:
         if msg.target_system == 0 and msg.target_component == 0:
@@ -330,6 +355,13 @@ class Commands(Telemetry):
         if name not in self._params or not math.isfinite(msg.param_value):
             return
         self._params[name] = float(msg.param_value)
+        if name in ("FS_EKF_ACTION", "FS_EKF_THRESH"):
+            if name == "FS_EKF_THRESH":
+                self._flight.params = dataclasses.replace(self._flight.params, fs_ekf_thresh=float(msg.param_value))
+            elif round(msg.param_value) in (1, 2, 3):
+                self._flight.params = dataclasses.replace(self._flight.params, fs_ekf_action=round(msg.param_value))
+            else:
+                return
         if name == "MIS_TAKEOFF_ALT":
             self._flight.params = dataclasses.replace(
                 self._flight.params, default_takeoff_height_m=float(msg.param_value)

@@ -72,6 +72,7 @@ PARAMS: dict[str, dict[str, float]] = {
     "ardupilot": {
         "GUID_TIMEOUT": 3.0,
         "FS_EKF_ACTION": 1.0,
+        "FS_EKF_THRESH": 0.8,
         "DISARM_DELAY": 10.0,
         "LAND_SPEED": 50.0,
         "SYSID_THISMAV": 1.0,

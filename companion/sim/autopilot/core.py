@@ -74,7 +74,8 @@ class AutopilotCore:
         self._phys_t = 0.0
         self._started = False
         self._origin: tuple[float, float, float] | None = cfg.origin_lla
-        self._home_set = cfg.origin_lla is not None
+        self._timesync_next_s = 0.0
+        self._announced_mode = self._flight.mode  # ArduPilot sends its own TIMESYNC request every 10 s
         self._streams: dict[str, Stream] = {}
         self._gcs_next_s = 0.0
         self._imu_f_sum = [0.0, 0.0, 0.0]
@@ -158,10 +159,17 @@ class AutopilotCore:
 
     # ----- sending ---------------------------------------------------------------------------
 
+    def _heartbeat(self) -> Any:
+        raise NotImplementedError  # telemetry.py
+
     def _flush_events(self) -> None:
         events, self._flight.events = self._flight.events, []
         for severity, text in events:
             self._send(self._mav.statustext_encode(severity, text[:50].encode()))
+        if self._flight.mode != self._announced_mode:
+            self._announced_mode = self._flight.mode
+            if self.profile.name == "ardupilot" and self._started:
+                self._send(self._heartbeat())  # ArduCopter sends a HEARTBEAT at once on a mode change
 
     def _send(self, msg: Any, mav: mavlink.MAVLink | None = None) -> None:
         encoder = self._mav if mav is None else mav

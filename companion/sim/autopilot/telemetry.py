@@ -133,8 +133,11 @@ class Telemetry(AutopilotCore):
             if cfg.require_vision:
                 sensors |= mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
             health = sensors
-            if not healthy:
-                health &= ~(mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION | mavlink.MAV_SYS_STATUS_PREARM_CHECK)
+            age = self._flight.ekf.vision_age_s(now_s)
+            if cfg.require_vision and (age is None or age > 0.5 or not healthy):
+                health &= ~mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+            if self._flight.prearm_failures(now_s, v):
+                health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
             if self._battery_remaining_pct() <= cfg.battery.critical_remaining_pct:
                 health &= ~mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
             return mav.sys_status_encode(
@@ -190,30 +193,12 @@ class Telemetry(AutopilotCore):
                 0,
             )
         if name == "EXTENDED_SYS_STATE":
-            return mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, self._flight.landed_state(v))
+            return mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, self._flight.landed_state(v, now_s))
         if name == "EKF_STATUS_REPORT":
-            if healthy:
-                flags = (
-                    mavlink.EKF_ATTITUDE
-                    | mavlink.EKF_VELOCITY_HORIZ
-                    | mavlink.EKF_VELOCITY_VERT
-                    | mavlink.EKF_POS_HORIZ_REL
-                    | mavlink.EKF_POS_VERT_ABS
-                    | mavlink.EKF_POS_VERT_AGL
-                    | mavlink.EKF_PRED_POS_HORIZ_REL
-                )
-                if self._origin is not None:
-                    flags |= mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS
-                var = 0.05
-            else:
-                flags = (
-                    mavlink.EKF_ATTITUDE
-                    | mavlink.EKF_VELOCITY_VERT
-                    | mavlink.EKF_POS_VERT_ABS
-                    | mavlink.EKF_CONST_POS_MODE
-                )
-                var = 1.2
-            return mav.ekf_status_report_encode(flags, var, var, 0.05, 0.05, 0.0, 0.0)
+            ekf = self._flight.ekf
+            flags = ekf.flags(now_s, self._origin is not None)
+            vel_var, pos_var = ekf.variances(now_s)
+            return mav.ekf_status_report_encode(flags, vel_var, pos_var, 0.05, 0.05, 0.0, 0.0)
         if name == "DISTANCE_SENSOR":
             return self._distance_down(t_ms)
         if name == "HIGHRES_IMU":
@@ -228,7 +213,7 @@ class Telemetry(AutopilotCore):
                 round(lat * 1e7), round(lon * 1e7), round(alt * 1000), self._time_usec(now_s)
             )
         if name == "HOME_POSITION":
-            if self._origin is None:
+            if self._origin is None or (self.profile.name == "ardupilot" and not self._flight.home_set):
                 return None
             home = (self._flight.home_ne_m[0], self._flight.home_ne_m[1], 0.0)
             lat, lon, alt = self._llh(home, self._origin)
