@@ -108,7 +108,7 @@ class FlightTimings:
 # Per profile. ArduPilot: measured on ArduCopter SITL (3 recordings; see docs/fake_autopilot.md):
 # position lost 7.1 s after the last pose, FS_EKF (10 checks at 10 Hz) LAND at 7.95 s; pre-arm ready
 # 11.8-13.1 s after vision starts; NAV_TAKEOFF → off the ground 3.3 s, 95 % of 1 m at 4.6-4.75 s;
-# LAND 0.52-0.55 m/s, landed ~1.7 s after touchdown, then disarmed; a failsafe LAND pauses 4 s
+# LAND 0.52-0.55 m/s, "Disarming motors" 2.2 s after touchdown; a failsafe LAND pauses 4 s
 # (set_mode_land_with_pause); a 0.5 m/s velocity step starts after 0.27 s and the vehicle slows to
 # half speed 0.46 s after GUID_TIMEOUT: the shaping limits are fitted to these two (with this
 # airframe's own 0.45 s velocity lag), not ArduPilot's PSC_JERK_XY / WPNAV_ACCEL defaults.
@@ -121,7 +121,7 @@ _TIMINGS: dict[str, FlightTimings] = {
         takeoff_gain_per_s=1.5,
         takeoff_spool_s=3.1,
         land_speed_m_s=0.53,
-        land_disarm_delay_s=1.75,
+        land_disarm_delay_s=2.2,
         failsafe_land_pause_s=4.0,
         guided_accel_m_s2=2.0,
         guided_jerk_m_s3=10.0,
