@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import math
 import socket
@@ -286,7 +287,7 @@ def _timeline(peer: Peer) -> dict[str, list[list[float]]]:
 
 
 def _timesync_summary(times: list[float]) -> dict[str, Any]:
-    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
     return {"count": len(times), "median_interval_s": _r(statistics.median(gaps)) if gaps else None}
 
 
