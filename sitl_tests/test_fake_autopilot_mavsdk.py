@@ -137,7 +137,7 @@ async def test_mavsdk_flies_px4_profile_takeoff_and_offboard_velocity() -> None:
 
 async def test_mavsdk_flies_ardupilot_profile_guided_takeoff_and_velocity() -> None:
     # MAVSDK sets no EKF origin: the fake starts with one (as with GPS), so ArduPilot can set home; its
-    # EKF alignment (12 s of vision on ArduCopter SITL) is shortened to keep this real-time test short.
+    # EKF alignment (~12 s of vision on ArduCopter SITL) is shortened to keep this real-time test short.
     extra = {"origin_lla": (47.397742, 8.545594, 488.0), "flight": FlightParams(ekf_alignment_s=0.5)}
     async with mavsdk_session("ardupilot", **extra) as (ap, p):
         tel, action, offboard = p["telemetry"], p["action"], p["offboard"]

@@ -234,7 +234,7 @@ async def test_message_interval_drives_highres_imu_at_200_hz(clock: ManualClock)
 
 
 async def test_arming_is_denied_without_a_fresh_vision_pose(clock: ManualClock) -> None:
-    # The EKF's alignment (12 s, as on ArduCopter SITL) is shortened: this test is about vision freshness.
+    # The EKF's alignment (~12 s, as on ArduCopter SITL) is shortened: this test is about vision freshness.
     async with session(clock, origin_lla=ORIGIN, flight=FlightParams(ekf_alignment_s=0.1)) as (ap, client):
         client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
         await clock.advance(0.1)

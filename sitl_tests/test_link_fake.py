@@ -94,7 +94,7 @@ async def fake_and_link(
     profile: str = "ardupilot", link_kwargs: dict[str, Any] | None = None, **fake_kwargs: Any
 ) -> AsyncIterator[tuple[ManualClock, FakeAutopilot, MavLink]]:
     clock = ManualClock(100.0)
-    # The EKF's alignment (12 s of vision on ArduCopter SITL) is shortened: these tests are about the link.
+    # The EKF's alignment (~12 s of vision on ArduCopter SITL) is shortened: these tests are about the link.
     fake_kwargs.setdefault("flight", FlightParams(ekf_alignment_s=0.5))
     cfg = FakeAutopilotConfig(profile=profile, listen="udpin:127.0.0.1:0", **fake_kwargs)
     async with FakeAutopilot(cfg, clock=clock) as ap:

@@ -25,7 +25,7 @@ class Sim:
     """FlightLogic + dynamics stepped at 200 Hz; optional vision at 30 Hz and setpoint streams at 10 Hz."""
 
     def __init__(self, profile: Profile, **params: object) -> None:
-        # The EKF's alignment (12 s for ArduPilot) is shortened explicitly: these tests are about the
+        # The EKF's alignment (11.8 s for ArduPilot) is shortened explicitly: these tests are about the
         # flight rules; test_ardupilot_arms_only_after_the_ekf_aligned checks the alignment itself.
         params.setdefault("ekf_alignment_s", 0.05)
         self.logic = FlightLogic(profile, FlightParams(**params))  # type: ignore[arg-type]
@@ -107,7 +107,7 @@ def test_arming_needs_a_fresh_vision_pose(
 
 
 def test_ardupilot_arms_only_after_the_ekf_aligned() -> None:
-    sim = Sim(ARDUPILOT, ekf_alignment_s=None)  # the profile's 12 s (ArduCopter SITL: 11.8-13.1 s)
+    sim = Sim(ARDUPILOT, ekf_alignment_s=None)  # the profile's 11.8 s (ArduCopter SITL: 11.8-13.1 s)
     sim.logic.home_set = False
     sim.vision = False
     sim.run(0.5)
@@ -205,7 +205,7 @@ def test_land_descends_and_disarms_on_the_ground() -> None:
     sim = _ardupilot_airborne(2.0)
     assert sim.logic.land(sim.t, sim.vehicle)[0] == ACCEPTED
     assert sim.logic.landed_state(sim.vehicle) == mavlink.MAV_LANDED_STATE_LANDING
-    sim.run(2.0 / flight_timings(FlightParams(), ARDUPILOT).land_speed_m_s + 2.5)
+    sim.run(2.0 / flight_timings(FlightParams(), ARDUPILOT).land_speed_m_s + 3.0)  # SITL: disarm 2.2 s after touchdown
     assert sim.vehicle.on_ground
     assert not sim.logic.armed
     assert sim.logic.landed_state(sim.vehicle) == mavlink.MAV_LANDED_STATE_ON_GROUND

@@ -7,7 +7,7 @@ is ready to arm and what it reports, measured against ArduCopter SITL (EKF3, ext
 - a vision pose gives a position at once (EKF_STATUS_REPORT flags 167 → 831 within 0.25 s), but
   pre-arm checks pass only after `alignment_s` of continuous vision (11.8-13.1 s on the SITL);
 - when vision stops, the EKF dead-reckons (IMU + baro height) and keeps its flags for
-  `vision_timeout_s` (7.1 s on the SITL), then reports no horizontal position (flags 37, + 64 with
+  `vision_timeout_s` (7.07-7.27 s on the SITL), then reports no horizontal position (flags 37, + 64 with
   a valid height above ground);
 - EKF_POS_VERT_AGL (64) appears about 1 s after NAV_TAKEOFF and disappears when arming again.
 

@@ -106,7 +106,7 @@ class FlightTimings:
 
 
 # Per profile. ArduPilot: measured on ArduCopter SITL (3 recordings; see docs/fake_autopilot.md):
-# position lost 7.1 s after the last pose, FS_EKF (10 checks at 10 Hz) LAND at 7.95 s; pre-arm ready
+# position lost 7.07-7.27 s after the last pose, FS_EKF (10 checks at 10 Hz) LAND at 7.95 s; pre-arm ready
 # 11.8-13.1 s after vision starts; NAV_TAKEOFF → off the ground 3.3 s, 95 % of 1 m at 4.6-4.75 s;
 # LAND 0.52-0.55 m/s, "Disarming motors" 2.2 s after touchdown; a failsafe LAND pauses 4 s
 # (set_mode_land_with_pause); a 0.5 m/s velocity step starts after 0.27 s and the vehicle slows to
@@ -114,9 +114,9 @@ class FlightTimings:
 # airframe's own 0.45 s velocity lag), not ArduPilot's PSC_JERK_XY / WPNAV_ACCEL defaults.
 _TIMINGS: dict[str, FlightTimings] = {
     "ardupilot": FlightTimings(
-        vision_timeout_s=7.0,
+        vision_timeout_s=7.1,
         vision_failsafe_s=7.95,
-        ekf_alignment_s=12.0,
+        ekf_alignment_s=11.8,
         takeoff_speed_m_s=1.0,
         takeoff_gain_per_s=1.5,
         takeoff_spool_s=3.1,
