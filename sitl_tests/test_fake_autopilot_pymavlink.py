@@ -240,10 +240,12 @@ async def test_arming_is_denied_without_a_fresh_vision_pose(clock: ManualClock) 
         await clock.advance(0.1)
         assert client.acks(mavlink.MAV_CMD_COMPONENT_ARM_DISARM) == [mavlink.MAV_RESULT_FAILED]
         assert any(m.text == "Arm: VisOdom: not healthy" for m in client.of("STATUSTEXT"))  # ArduCopter SITL
-        assert not ap.armed
+        assert not ap.armed and not ap.ready_to_arm
+        await clock.advance(1.0)  # SYS_STATUS at 1 Hz
+        assert not client.of("SYS_STATUS")[-1].onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
         async with streaming(clock, 1 / 30, vision_sender(ap, client)):
             await clock.advance(0.2)
-            assert ap.ekf_healthy
+            assert ap.ekf_healthy and ap.ready_to_arm
             client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
             await clock.advance(1.1)
             assert client.acks(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)[-1] == mavlink.MAV_RESULT_ACCEPTED

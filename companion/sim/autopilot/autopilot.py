@@ -118,6 +118,14 @@ class FakeAutopilot(Commands):
         return self._flight.ekf_healthy(self.clock.now())
 
     @property
+    def ready_to_arm(self) -> bool:
+        """Whether the pre-arm checks pass now (what SYS_STATUS's PREARM_CHECK health bit reports): with
+        `require_vision`, ArduPilot needs `ekf_alignment_s` of vision and a home (an origin)."""
+        if self._started:
+            self._advance_physics(self.clock.now())
+        return not self._flight.prearm_failures(self.clock.now(), self._vehicle)
+
+    @property
     def origin_lla(self) -> tuple[float, float, float] | None:
         """The EKF origin (lat deg, lon deg, alt m) once set."""
         return self._origin
