@@ -83,6 +83,9 @@ EXACT = [
     "land.result", "land.mode", "land.landed_states", "land.ekf_flags_on_ground_after",
     "long_dropout.arm_result", "long_dropout.takeoff_result", "long_dropout.mode_after",
     "long_dropout.ekf_flags_during", "long_dropout.landed_states",
+    # messages sent on events (HOME_POSITION + GPS_GLOBAL_ORIGIN whenever home is set: first pose, each arming)
+    "message_counts.HOME_POSITION", "message_counts.GPS_GLOBAL_ORIGIN", "message_counts.COMMAND_ACK",
+    "message_counts.AUTOPILOT_VERSION",
 ]
 ROWS: list[Row] = [Row(p, "exact") for p in EXACT] + [
     Row("boot.first_heartbeat_s", "s"),

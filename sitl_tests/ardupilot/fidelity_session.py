@@ -263,9 +263,18 @@ async def run_session(url: str, now: Callable[[], float], pause: Sleep, long_dro
     finally:
         obs["autopilot_timesync"] = _timesync_summary(peer.ap_timesync_requests)
         obs["timeline"] = _timeline(peer)
+        obs["message_counts"] = _message_counts(peer)
         obs["session_s"] = _r(peer.t())
         peer.close()
     return obs
+
+
+def _message_counts(peer: Peer) -> dict[str, int]:
+    """How many of each message type the autopilot sent over the session (asked for or not)."""
+    counts: dict[str, int] = {}
+    for _, m in peer.log:
+        counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+    return dict(sorted(counts.items()))
 
 
 def _timeline(peer: Peer) -> dict[str, list[list[float]]]:

@@ -139,7 +139,10 @@ class Commands(Telemetry):
             if ardupilot and p[0] not in (0.0, 1.0):
                 result = mavlink.MAV_RESULT_UNSUPPORTED  # ArduPilot: param1 must be exactly 0 or 1
             elif p[0] >= 0.5:
+                was_armed = flight.armed
                 result, _ = flight.arm(now_s, vehicle, force)
+                if ardupilot and flight.armed and not was_armed and flight.home_set:
+                    self._send_home()  # arming moves home to the vehicle (AP_AHRS::set_home)
             else:
                 result, _ = flight.disarm(now_s, vehicle, force)
         elif command == mavlink.MAV_CMD_DO_SET_MODE:
@@ -298,7 +301,14 @@ class Commands(Telemetry):
         if not flight.home_set and self._origin is not None and flight.ekf.has_position(now_s):
             flight.home_set = True
             if self.profile.name == "ardupilot":
-                self._send_stream("HOME_POSITION", now_s)
+                self._send_home()
+
+    def _send_home(self) -> None:
+        """ArduPilot sends HOME_POSITION and GPS_GLOBAL_ORIGIN whenever home is set (AP_AHRS::set_home;
+        the SITL: at the first pose and at each arming)."""
+        now_s = self.clock.now()
+        self._send_stream("HOME_POSITION", now_s)
+        self._send_stream("GPS_GLOBAL_ORIGIN", now_s)
 
     def _on_vision_position_estimate(self, msg: Any, now_s: float) -> None:
         if all(math.isfinite(x) for x in (msg.x, msg.y, msg.z)):
