@@ -257,8 +257,8 @@ async def test_arming_is_denied_without_a_fresh_vision_pose(clock: ManualClock) 
             client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0)
             await clock.advance(0.05)
             assert not ap.armed
-        # ArduCopter: the EKF dead-reckons on (still healthy) but VisOdom fails after 0.5 s without a pose.
-        await clock.advance(0.6)
+        # ArduCopter: the EKF dead-reckons on (still healthy) but VisOdom fails 300 ms after the last pose.
+        await clock.advance(0.35)
         assert ap.ekf_healthy
         client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
         await clock.advance(0.05)

@@ -78,11 +78,11 @@ def test_offboard_stream_rule_needs_more_than_2_hz_and_a_fresh_setpoint() -> Non
 
 
 # ArduCopter SITL: ARM before any vision -> FAILED, "Arm: VisOdom: not healthy"; after a pose stops, its
-# EKF keeps a position for 7 s (dead reckoning) but the visual-odometry check fails after 0.5 s.
+# EKF keeps a position for 7 s (dead reckoning) but the visual-odometry check fails after 300 ms.
 @pytest.mark.parametrize(
     ("profile", "denied", "reason", "stale_s", "healthy_when_stale"),
     [
-        (ARDUPILOT, mavlink.MAV_RESULT_FAILED, "VisOdom: not healthy", 0.6, True),
+        (ARDUPILOT, mavlink.MAV_RESULT_FAILED, "VisOdom: not healthy", 0.35, True),
         (PX4, mavlink.MAV_RESULT_DENIED, "Need Position Estimate", 0.35, False),
     ],
 )

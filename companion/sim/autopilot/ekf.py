@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-__all__ = ["EkfModel", "FsEkfCheck"]
+__all__ = ["VISODOM_TIMEOUT_S", "EkfModel", "FsEkfCheck"]
 
 _ATT = mavlink.EKF_ATTITUDE
 _VEL_H, _VEL_V = mavlink.EKF_VELOCITY_HORIZ, mavlink.EKF_VELOCITY_VERT
@@ -26,7 +26,7 @@ _POS_H_REL, _POS_H_ABS = mavlink.EKF_POS_HORIZ_REL, mavlink.EKF_POS_HORIZ_ABS
 _POS_V_ABS, _POS_V_AGL = mavlink.EKF_POS_VERT_ABS, mavlink.EKF_POS_VERT_AGL
 _CONST_POS = mavlink.EKF_CONST_POS_MODE
 _PRED_H_REL, _PRED_H_ABS = mavlink.EKF_PRED_POS_HORIZ_REL, mavlink.EKF_PRED_POS_HORIZ_ABS
-_VISODOM_TIMEOUT_S = 0.5  # ArduPilot's visual-odometry health: a pose in the last half second
+VISODOM_TIMEOUT_S = 0.3  # ArduPilot's AP_VISUALODOM_TIMEOUT_MS: VisOdom is healthy with a pose in the last 300 ms
 
 
 class EkfModel:
@@ -108,7 +108,7 @@ class EkfModel:
         if not home_set:
             failures.append("AHRS: waiting for home")
         age = self.vision_age_s(now_s)
-        if age is None or age > _VISODOM_TIMEOUT_S:
+        if age is None or age > VISODOM_TIMEOUT_S:
             failures.append("VisOdom: not healthy")
         elif not self.aligned(now_s):
             failures.append("AHRS: not healthy")  # the SITL says "Gyros inconsistent" here: see docs

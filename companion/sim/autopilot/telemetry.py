@@ -13,6 +13,7 @@ from companion.sim.autopilot.config import (
     EARTH_RADIUS_M,
 )
 from companion.sim.autopilot.core import AutopilotCore
+from companion.sim.autopilot.ekf import VISODOM_TIMEOUT_S
 from companion.sim.autopilot.profiles import Behaviour
 
 
@@ -134,7 +135,7 @@ class Telemetry(AutopilotCore):
                 sensors |= mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
             health = sensors
             age = self._flight.ekf.vision_age_s(now_s)
-            if cfg.require_vision and (age is None or age > 0.5 or not healthy):
+            if cfg.require_vision and (age is None or age > VISODOM_TIMEOUT_S or not healthy):
                 health &= ~mavlink.MAV_SYS_STATUS_SENSOR_VISION_POSITION
             if self._flight.prearm_failures(now_s, v):
                 health &= ~mavlink.MAV_SYS_STATUS_PREARM_CHECK
