@@ -212,9 +212,13 @@ async def rig(
     if api:
         ov.setdefault("api", {}).update({"enabled": True, "port": 0, "bind": "127.0.0.1"})
     config = sim_config(tmp_path, ov)
+    flight = flight or FlightParams(takeoff_speed_m_s=0.5)
+    if flight.ekf_alignment_s is None:
+        # The fake's EKF needs 11.8 s of vision before it may arm, like ArduCopter's; these tests fly at once.
+        flight = dataclasses.replace(flight, ekf_alignment_s=0.5)
     ap_cfg = FakeAutopilotConfig(profile=profile, listen="udpin:127.0.0.1:0", seed=3, gcs_heartbeat=gcs_heartbeat,
                                  wind=DrydenConfig(w20_m_s=0.0), physics_rate_hz=100.0,
-                                 flight=flight or FlightParams(takeoff_speed_m_s=0.5), max_records=max_records)
+                                 flight=flight, max_records=max_records)
     async with FakeAutopilot(ap_cfg, clock=clock) as ap:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=ap.url_for_client))
         camera_model = load_camera_model(config.camera)

@@ -18,7 +18,7 @@ import pytest
 
 from companion.clock import ManualClock
 from companion.control.types import VelocityCommand
-from companion.sim.autopilot import FakeAutopilot, FakeAutopilotConfig, Fault
+from companion.sim.autopilot import FakeAutopilot, FakeAutopilotConfig, Fault, FlightParams
 from drivers.mavlink import LinkConfig, LinkHealth, MavLink, PoseOut
 from drivers.mavlink.wire import covariance_from_upper_triangle
 
@@ -94,6 +94,8 @@ async def fake_and_link(
     profile: str = "ardupilot", link_kwargs: dict[str, Any] | None = None, **fake_kwargs: Any
 ) -> AsyncIterator[tuple[ManualClock, FakeAutopilot, MavLink]]:
     clock = ManualClock(100.0)
+    # The EKF's alignment (~12 s of vision on ArduCopter SITL) is shortened: these tests are about the link.
+    fake_kwargs.setdefault("flight", FlightParams(ekf_alignment_s=0.5))
     cfg = FakeAutopilotConfig(profile=profile, listen="udpin:127.0.0.1:0", **fake_kwargs)
     async with FakeAutopilot(cfg, clock=clock) as ap:
         kwargs: dict[str, Any] = {

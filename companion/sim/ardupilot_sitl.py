@@ -60,8 +60,8 @@ def sitl_binary() -> Path | None:
     if env:
         p = Path(env)
         candidates.append(p / "arducopter" if p.is_dir() else p)
-    for base in (_REPO, Path.cwd()):
-        candidates.append(base.parent / "shared" / "ardupilot" / "arducopter")
+    for base in (_REPO, Path.cwd()):  # ../shared beside the tree; from a git worktree one level further up
+        candidates += [parent / "shared" / "ardupilot" / "arducopter" for parent in (base.parent, base.parent.parent)]
     for c in candidates:
         if c.is_file() and os.access(c, os.X_OK):
             return c.resolve()

@@ -14,6 +14,7 @@ from companion.sim.autopilot.flight import (
     offboard_stream_ok,
 )
 from companion.sim.autopilot.profiles import ARDUPILOT, PX4, Profile
+from companion.sim.autopilot.rules import flight_timings
 from companion.sim.autopilot.vehicle import VehicleParams, VehicleState, initial_vehicle, step_vehicle
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
@@ -24,7 +25,11 @@ class Sim:
     """FlightLogic + dynamics stepped at 200 Hz; optional vision at 30 Hz and setpoint streams at 10 Hz."""
 
     def __init__(self, profile: Profile, **params: object) -> None:
+        # The EKF's alignment (11.8 s for ArduPilot) is shortened explicitly: these tests are about the
+        # flight rules; test_ardupilot_arms_only_after_the_ekf_aligned checks the alignment itself.
+        params.setdefault("ekf_alignment_s", 0.05)
         self.logic = FlightLogic(profile, FlightParams(**params))  # type: ignore[arg-type]
+        self.logic.home_set = True  # the autopilot sets home once the origin is set (not modelled here)
         self.vehicle: VehicleState = initial_vehicle()
         self.t = 0.0
         self.vision = True
@@ -72,26 +77,51 @@ def test_offboard_stream_rule_needs_more_than_2_hz_and_a_fresh_setpoint() -> Non
     assert mode_change_refusal(ARDUPILOT.mode("LAND"), ekf_healthy=False, offboard_ok=True) is None
 
 
+# ArduCopter SITL: ARM before any vision -> FAILED, "Arm: VisOdom: not healthy"; after a pose stops, its
+# EKF keeps a position for 7 s (dead reckoning) but the visual-odometry check fails after 300 ms.
 @pytest.mark.parametrize(
-    ("profile", "denied"), [(ARDUPILOT, mavlink.MAV_RESULT_FAILED), (PX4, mavlink.MAV_RESULT_DENIED)]
+    ("profile", "denied", "reason", "stale_s", "healthy_when_stale"),
+    [
+        (ARDUPILOT, mavlink.MAV_RESULT_FAILED, "VisOdom: not healthy", 0.35, True),
+        (PX4, mavlink.MAV_RESULT_DENIED, "Need Position Estimate", 0.35, False),
+    ],
 )
-def test_arming_needs_a_fresh_vision_pose(profile: Profile, denied: int) -> None:
+def test_arming_needs_a_fresh_vision_pose(
+    profile: Profile, denied: int, reason: str, stale_s: float, healthy_when_stale: bool
+) -> None:
     sim = Sim(profile)
     sim.vision = False
     sim.run(1.0)
-    result, reason = sim.logic.arm(sim.t, sim.vehicle)
-    assert result == denied and reason == "Need Position Estimate"
-    assert sim.logic.events[-1][1] == profile.statustext_prefix + "Need Position Estimate"
+    result, why = sim.logic.arm(sim.t, sim.vehicle)
+    assert result == denied and why == reason
+    assert sim.logic.events[-1][1] == profile.statustext_prefix + reason
     sim.vision = True
     sim.run(0.1)
     assert sim.logic.arm(sim.t, sim.vehicle)[0] == ACCEPTED
     assert sim.logic.armed
-    # Stale by more than 300 ms: unhealthy again.
     sim.logic.disarm(sim.t, sim.vehicle)
     sim.vision = False
-    sim.run(0.35)
-    assert not sim.logic.ekf_healthy(sim.t)
+    sim.run(stale_s)
+    assert sim.logic.ekf_healthy(sim.t) is healthy_when_stale
     assert sim.logic.arm(sim.t, sim.vehicle)[0] == denied
+
+
+def test_ardupilot_arms_only_after_the_ekf_aligned() -> None:
+    sim = Sim(ARDUPILOT, ekf_alignment_s=None)  # the profile's 11.8 s (ArduCopter SITL: 11.8-13.1 s)
+    sim.logic.home_set = False
+    sim.vision = False
+    sim.run(0.5)
+    assert sim.mode("GUIDED") == ACCEPTED  # ArduCopter does not check the mode's needs while disarmed
+    assert sim.logic.arm(sim.t, sim.vehicle)[0] == mavlink.MAV_RESULT_FAILED
+    assert [t for _, t in sim.logic.events[-2:]] == ["Arm: AHRS: waiting for home", "Arm: VisOdom: not healthy"]
+    sim.logic.home_set = True
+    sim.vision = True
+    sim.run(11.5)
+    assert sim.logic.ekf_healthy(sim.t) and sim.logic.prearm_failures(sim.t, sim.vehicle) == ["AHRS: not healthy"]
+    assert sim.logic.arm(sim.t, sim.vehicle)[0] == mavlink.MAV_RESULT_FAILED
+    sim.run(0.6)
+    assert sim.logic.prearm_failures(sim.t, sim.vehicle) == []
+    assert sim.logic.arm(sim.t, sim.vehicle)[0] == ACCEPTED
 
 
 def test_no_vision_needed_in_gps_configuration() -> None:
@@ -100,13 +130,14 @@ def test_no_vision_needed_in_gps_configuration() -> None:
     assert sim.logic.arm(sim.t, sim.vehicle)[0] == ACCEPTED
 
 
-def _ardupilot_airborne(height_m: float = 2.0) -> Sim:
-    sim = Sim(ARDUPILOT)
+def _ardupilot_airborne(height_m: float = 2.0, **params: object) -> Sim:
+    sim = Sim(ARDUPILOT, **params)
     sim.run(0.1)
     assert sim.mode("GUIDED") == ACCEPTED
     assert sim.logic.arm(sim.t, sim.vehicle)[0] == ACCEPTED
     assert sim.logic.takeoff(height_m, sim.t, sim.vehicle)[0] == ACCEPTED
-    sim.run(height_m / FlightParams().takeoff_speed_m_s + 3.0)
+    spool_s = flight_timings(FlightParams(), ARDUPILOT).takeoff_spool_s
+    sim.run(spool_s + height_m / flight_timings(FlightParams(), ARDUPILOT).takeoff_speed_m_s + 3.0)
     assert not sim.logic.taking_off()
     return sim
 
@@ -131,7 +162,7 @@ def test_ardupilot_guided_velocity_times_out_after_3_s() -> None:
     sim.logic.on_setpoint(Setpoint(sim.t, (1.0, 0.0, 0.0), None, None, 0.0))
     sim.run(2.5)
     assert sim.vehicle.velocity_ned_m_s[0] == pytest.approx(1.0, abs=0.05)
-    sim.run(2.0)  # 4.5 s after the only setpoint
+    sim.run(2.5)  # 5 s after the only setpoint (the SITL brakes shaped: half speed 0.46 s after the timeout)
     assert abs(sim.vehicle.velocity_ned_m_s[0]) < 0.05
     stopped_at = sim.vehicle.position_ned_m[0]
     sim.run(2.0)
@@ -174,7 +205,7 @@ def test_land_descends_and_disarms_on_the_ground() -> None:
     sim = _ardupilot_airborne(2.0)
     assert sim.logic.land(sim.t, sim.vehicle)[0] == ACCEPTED
     assert sim.logic.landed_state(sim.vehicle) == mavlink.MAV_LANDED_STATE_LANDING
-    sim.run(2.0 / FlightParams().land_speed_m_s + 2.0)
+    sim.run(2.0 / flight_timings(FlightParams(), ARDUPILOT).land_speed_m_s + 3.0)  # SITL: disarm 2.2 s after touchdown
     assert sim.vehicle.on_ground
     assert not sim.logic.armed
     assert sim.logic.landed_state(sim.vehicle) == mavlink.MAV_LANDED_STATE_ON_GROUND
@@ -189,22 +220,50 @@ def test_disarm_refused_in_flight_unless_forced() -> None:
     assert sim.vehicle.on_ground
 
 
-@pytest.mark.parametrize("profile", [ARDUPILOT, PX4])
-def test_vision_loss_in_flight_lands(profile: Profile) -> None:
+# ArduCopter SITL, vision stopped at 1 m in GUIDED: flags unchanged for 7.1 s, "EKF variance" and LAND at
+# 7.95 s (FS_EKF), a 4 s pause, then the descent; PX4 profile: the fake's own 1 s vision failsafe.
+@pytest.mark.parametrize(("profile", "failsafe_s", "land_s"), [(ARDUPILOT, 7.95, 12.0), (PX4, 1.0, 8.0)])
+def test_vision_loss_in_flight_lands(profile: Profile, failsafe_s: float, land_s: float) -> None:
     sim = Sim(profile)
     sim.run(0.1)
-    sim.logic.arm(sim.t, sim.vehicle)
     if profile is ARDUPILOT:
         sim.mode("GUIDED")
+    sim.logic.arm(sim.t, sim.vehicle)
     sim.logic.takeoff(2.0, sim.t, sim.vehicle)
-    sim.run(5.0)
+    sim.run(8.0)
+    height_m = sim.vehicle.height_m
     sim.vision = False
-    sim.run(0.9)
-    assert sim.logic.mode.name != profile.land_mode
+    sim.run(failsafe_s - 0.1)
+    assert sim.logic.mode.name != profile.land_mode and sim.logic.armed
+    assert sim.vehicle.height_m == pytest.approx(height_m, abs=0.02)  # dead reckoning holds the height
     sim.run(0.2)
     assert sim.logic.mode.name == profile.land_mode
-    sim.run(8.0)
+    sim.run(land_s)
     assert sim.vehicle.on_ground and not sim.logic.armed
+
+
+def test_ardupilot_ekf_failsafe_pauses_the_landing_and_obeys_fs_ekf_action() -> None:
+    sim = _ardupilot_airborne(2.0)
+    sim.vision = False
+    sim.run(8.0)
+    assert sim.logic.mode.name == "LAND"
+    texts = [t for _, t in sim.logic.events]
+    assert texts[-2:] == ["EKF variance", "EKF Failsafe: changed to LAND Mode"]
+    sim.run(3.5)  # set_mode_land_with_pause: 4 s at the same height
+    assert sim.vehicle.height_m == pytest.approx(2.0, abs=0.1)
+    sim.run(1.5)
+    assert sim.vehicle.height_m < 1.8
+    sim.vision = True
+    sim.run(1.5)
+    assert "EKF Failsafe Cleared" in [t for _, t in sim.logic.events] and sim.logic.mode.name == "LAND"
+    alt_hold = _ardupilot_airborne(2.0, fs_ekf_action=2)
+    alt_hold.vision = False
+    alt_hold.run(8.0)
+    assert alt_hold.logic.mode.name == "ALT_HOLD"
+    disabled = _ardupilot_airborne(2.0, fs_ekf_thresh=0.0)
+    disabled.vision = False
+    disabled.run(12.0)
+    assert disabled.logic.mode.name == "GUIDED" and disabled.logic.armed
 
 
 def test_battery_critical_in_flight_lands_once() -> None:
@@ -229,7 +288,7 @@ def test_rtl_flies_home_and_lands() -> None:
     sim = _ardupilot_airborne(3.0)
     sim.logic.on_setpoint(Setpoint(sim.t, (2.0, 1.0, 0.0), None, None, 0.0))
     sim.run(2.5)
-    assert sim.vehicle.position_ned_m[0] > 3.0
+    assert sim.vehicle.position_ned_m[0] > 2.5  # shaped acceleration (<= 2 m/s²) to 2 m/s
     assert sim.mode("RTL") == ACCEPTED
     sim.run(20.0)
     assert sim.vehicle.on_ground and not sim.logic.armed

@@ -63,7 +63,8 @@ class Profile:
     takeoff_mode: str | None  # PX4 switches to AUTO.TAKEOFF; ArduPilot takes off inside GUIDED
     arm_denied_result: int  # COMMAND_ACK result for a failed pre-arm check
     mode_denied_result: int  # COMMAND_ACK result for a refused mode change
-    statustext_prefix: str  # "PreArm: " / "Preflight Fail: "
+    statustext_prefix: str  # arming refusals: "Arm: " (ArduPilot, as answered to an ARM command) / "Preflight Fail: "
+    mode_checks_when_disarmed: bool  # ArduCopter checks a mode's needs (position) only when armed
 
     def mode(self, name: str) -> ModeDef:
         """The mode called `name` (case-insensitive); raises InputError if unknown."""
@@ -144,7 +145,8 @@ ARDUPILOT = Profile(
     takeoff_mode=None,
     arm_denied_result=mavlink.MAV_RESULT_FAILED,
     mode_denied_result=mavlink.MAV_RESULT_FAILED,
-    statustext_prefix="PreArm: ",
+    statustext_prefix="Arm: ",
+    mode_checks_when_disarmed=False,
 )
 
 PX4 = Profile(
@@ -160,6 +162,7 @@ PX4 = Profile(
     arm_denied_result=mavlink.MAV_RESULT_DENIED,
     mode_denied_result=mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
     statustext_prefix="Preflight Fail: ",
+    mode_checks_when_disarmed=True,
 )
 
 

@@ -224,6 +224,10 @@ class TcpServerTransport(ServerTransport):
                 self._on_bytes(data, key)
         except (ConnectionError, OSError):
             pass
+        except asyncio.CancelledError:
+            # close() cancels and awaits this handler; ending it quietly keeps Python 3.11's
+            # start_server from logging the cancelled handler as an "Exception in callback".
+            pass
         finally:
             self._writers.pop(key, None)
             if task is not None:
