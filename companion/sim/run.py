@@ -218,8 +218,10 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
             assert link is not None
             await link.wait_autopilot(10.0)
             # like an operator: wait until poses flow and the autopilot's EKF accepts them
-            t_wait = clock.now() + 20.0
-            while clock.now() < t_wait and not (daemon.counters.poses_sent >= 10 and ap.ekf_healthy):
+            # (ArduCopter's EKF aligns on the vision poses for ~12 s before it may arm: the fake does the same)
+            t_wait = clock.now() + 30.0
+            while clock.now() < t_wait and not (daemon.counters.poses_sent >= 10 and ap.ekf_healthy
+                                                and ap.ready_to_arm):
                 await clock.sleep(0.1)
             ready = daemon.counters.poses_sent >= 10 and ap.ekf_healthy
             if not ready:
