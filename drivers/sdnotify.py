@@ -47,8 +47,14 @@ class SdNotifier:
             return False
         try:
             if self._socket is None:
-                self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                # non-blocking: a full notify queue (systemd busy) drops a message instead of stalling the
+                # daemon's event loop, which runs the flight
+                self._socket = socket.socket(socket.AF_UNIX,
+                                             socket.SOCK_DGRAM | socket.SOCK_CLOEXEC | socket.SOCK_NONBLOCK)
             self._socket.sendto(message.encode("utf-8"), self._address)
+        except BlockingIOError:
+            _log.debug("sd_notify queue full: %s dropped", message.split("\n", 1)[0])
+            return False
         except OSError as exc:
             _log.warning("sd_notify failed: %s", exc)
             return False

@@ -143,3 +143,22 @@ async def test_ceiling_no_climb_above_the_limit(tmp_path: Path) -> None:
         for m in r.received("SET_POSITION_TARGET_LOCAL_NED"):
             if m.time_s > r.clock.now() - 5.0:
                 assert float(m.fields["vz"]) >= -0.05
+
+
+async def test_gcs_back_ends_the_hold_and_the_mission_resumes(tmp_path: Path) -> None:
+    # issue #13 item 4: after gcs-loss@T:10 the vehicle used to hover forever once the GCS was back
+    safety = {"gcs_loss_hover_s": 1.0, "gcs_loss_land_s": 20.0, "gcs_resume_s": 2.0}
+    async with rig(tmp_path, overrides={"safety": safety}) as r:
+        await airborne(r)
+        ex = r.daemon.executor
+        assert ex is not None
+        t_fault = r.clock.now()
+        r.schedule("gcs-loss", in_s=0.0, duration_s=3.0)
+        await r.advance_until(lambda: first_mode_command(r, BRAKE, t_fault) is not None, max_s=4.0)
+        assert ex.state is State.PAUSED
+        await r.advance_until(lambda: ex.state is State.RUNNING, max_s=8.0)  # GCS back for gcs_resume_s
+        t_resumed = r.clock.now()
+        assert t_resumed - t_fault >= 3.0 + 2.0 - 0.2
+        await r.advance_until(lambda: r.ap.mode == "GUIDED", max_s=3.0)
+        assert first_mode_command(r, 4.0, t_fault) is not None and first_mode_command(r, LAND, t_fault) is None
+        assert r.ap.armed and r.ap.truth.height_m > 0.8

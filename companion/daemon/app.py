@@ -210,6 +210,10 @@ class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog,
             with contextlib.suppress(Exception):
                 await self.link.close()
             self.link = None
+        if self._notifier is not None:
+            with contextlib.suppress(Exception):
+                self._notifier.close()
+            self._notifier = None
         if self.flight is not None:
             self._event("daemon-stopped", reason=self._shutdown_reason, **dataclasses.asdict(self.counters))
             self.flight.close()
