@@ -64,6 +64,8 @@ class AcquisitionConfig:
     (another pipe assignment or direction, or a pose more than `distinct_m` / `distinct_rad`
     away) scores at most `ambiguity_ratio` times its score. `yaw_gate_sigma`: hypotheses further
     than this many yaw standard deviations from a supplied heading are dropped.
+    `attitude_std_rad`: the roll / pitch error, which holds the refined tilt against
+    `edge_noise_px`, the noise of one edge sample.
     `covariance_inflation` as the tracker's.
     """
 
@@ -75,7 +77,7 @@ class AcquisitionConfig:
     max_directions: int = 2
     match_px: float = 8.0
     min_limb_px: float = 40.0
-    alpha_std_rad: float = 0.03
+    alpha_std_rad: float = 0.0175
     max_section_hypotheses: int = 6
     check_ranges_px: tuple[int, ...] = (10, 5, 3)
     samples_per_limb: int = 24
@@ -92,6 +94,8 @@ class AcquisitionConfig:
     distinct_m: float = 0.05
     distinct_rad: float = 0.035
     yaw_gate_sigma: float = 3.0
+    attitude_std_rad: float = 0.0175
+    edge_noise_px: float = 0.5
     covariance_inflation: float = 4.0
 
     def __post_init__(self) -> None:
@@ -283,6 +287,8 @@ def acquire_rack(
         return AcquisitionResult((), False, "no pipe pattern found", int(seg.length_px.size), num_limbs)
     cand.sort(key=lambda c: -c[0].score)
     damping = np.array([1.0 / 0.05**2] * 3 + [1.0 / 0.02**2] * 3)
+    # The autopilot's tilt against the edges: edge rows count 1 / (edge_noise² × inflation) each.
+    up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
     checked: list[tuple[SectionHypothesis, EdgeCheck]] = []
     top = cand[0][0].score
     for h, T in cand[: cfg.max_checked]:
@@ -290,10 +296,11 @@ def acquire_rack(
             break
         # Tracker polarity: +1 when the intensity increases outward from the pipe.
         chk = check_pose(img_f, camera, par, T, np.full(n_par, -float(h.polarity)), cfg.check_ranges_px,
-                         cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping)
+                         cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
+                         up_cam, up_weight)
         checked.append((h, chk))
-    hyps_out = [_finish(h, chk, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping) for h, chk in checked
-                if _credible(chk, cfg)]
+    hyps_out = [_finish(h, chk, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping, up_cam, up_weight)
+                for h, chk in checked if _credible(chk, cfg)]
     hyps_out.sort(key=lambda x: -x.score)
     hyps_out = _distinct(hyps_out, cfg)
     if not hyps_out:
@@ -333,7 +340,7 @@ def _distinct(hyps: list[RackHypothesis], cfg: AcquisitionConfig) -> list[RackHy
 
 def _finish(
     h: SectionHypothesis, chk: EdgeCheck, seg: Any, img_f: Any, camera: PinholeCamera, pipes_all: Any, n_par: int,
-    prior: AcquisitionPrior, cfg: AcquisitionConfig, damping: FloatArray,
+    prior: AcquisitionPrior, cfg: AcquisitionConfig, damping: FloatArray, up_cam: FloatArray, up_weight: float,
 ) -> RackHypothesis:
     """Along-pipe y (crossing pipe or prior), covariance and the public hypothesis."""
     T = chk.T_rack_cam.copy()
@@ -352,7 +359,8 @@ def _finish(
             pol = np.zeros(n_all)
             pol[:n_par] = -float(h.polarity)
             c = check_pose(img_f, camera, pipes_all, Ty, pol, cfg.check_ranges_px,
-                           cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping)
+                           cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
+                           up_cam, up_weight)
             # Both limbs of a crossing pipe must agree: one limb alone fits many positions.
             ls, la = c.limb_samples[2 * n_par:], c.limb_agree[2 * n_par:]
             seen = ls >= cfg.samples_per_limb / 2

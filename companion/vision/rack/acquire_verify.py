@@ -35,8 +35,9 @@ class EdgeCheck:
     """Outcome of `check_pose`: refined `T_rack_cam` (4x4); `num_samples` predicted limb samples;
     `agree_fraction` of them found and within the inlier distance; `pipe_samples` / `pipe_agree`
     (M,) the same per pipe, `limb_samples` / `limb_agree` (2M,) per limb (2m, 2m+1: pipe m);
-    `residual_px` robust std of the agreeing residuals; `H_data` (6x6) the edge information AᵀWA
-    of the last iteration and `scale2` the weighted residual variance (px²)."""
+    `residual_px` robust std of the agreeing residuals; `H_data` (8x8) the edge information AᵀWA
+    of the last iteration over the pose (6) and the two edge offsets, and `scale2` the weighted
+    residual variance (px²)."""
 
     T_rack_cam: FloatArray
     num_samples: int
@@ -68,24 +69,33 @@ def check_pose(
     inlier_px: float,
     margin_px: float,
     damping: FloatArray,
+    up_cam: FloatArray | None = None,
+    up_weight: float = 0.0,
 ) -> EdgeCheck:
     """Refine `T_rack_cam` on the limbs of `pipes` (one iteration per search range) and score it.
 
     `pipe_polarity` (M,) is the tracker's polarity of each pipe's limbs (+1: brighter outward, -1:
     darker outward, 0: either, e.g. a crossing pipe seen against other pipes); `damping` (6,) the
-    information of a zero-mean prior on each update. Edges count when their strength reaches a
-    quarter of the median strength on the pipes of known polarity (a tenth on the others: a pipe
-    lying on pipes shows a weak step).
+    information of a zero-mean prior on each update. As the tracker does, two edge offsets (px
+    along the outward normal, one per limb side) absorb the systematic shift of gradient-peak
+    edges next to shaded limbs; without them the silhouettes read a little wide or narrow and the
+    distance and the lateral position / roll about the pipes (nearly interchangeable from high
+    above) come out biased. `up_cam` (3,), when given, is the autopilot's rack up axis in the
+    camera frame, held with information `up_weight` (px² per rad²) against the rotation. Edges
+    count when their strength reaches a quarter of the median strength on the pipes of known
+    polarity (a tenth on the others: a pipe lying on pipes shows a weak step).
     """
     T = np.array(T_rack_cam, dtype=np.float64, copy=True)
     M = pipes.radii.size
     last: dict[str, Any] = {}
+    bias = np.zeros(2)
+    prior8 = np.concatenate([damping, [1.0 / 0.5**2] * 2])
     for rng_px in ranges_px:
         s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
         n = s.uv.shape[0]
         if n == 0:
             return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), float("inf"),
-                             np.zeros((6, 6)), 0.0)
+                             np.zeros((8, 8)), 0.0)
         pol = pipe_polarity[s.pipe]
         meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold)
         # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
@@ -96,11 +106,24 @@ def check_pose(
             found = found & (meas.strength >= frac * median_1d(meas.strength[ref]))
         f = np.flatnonzero(found)
         J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
-        A = np.einsum("nij,ni->nj", J6, s.normal_px[f])
-        r = meas.offset_px[f]
+        A = np.zeros((f.size, 8))
+        A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
+        side = s.limb[f] % 2
+        A[np.arange(f.size), 6 + side] = 1.0
+        r = meas.offset_px[f] - bias[side]
         w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
-        x, H_data, _ = solve_normal_equations(A, r, w, damping)
-        T = T @ se3.exp_one(x)
+        A_all, r_all, w_all = A, r, w
+        if up_cam is not None and up_weight > 0:
+            u, J_up = up_axis_with_jacobian(T)
+            A_up = np.zeros((3, 8))
+            A_up[:, :6] = J_up
+            A_all = np.vstack([A, A_up])
+            r_all = np.concatenate([r, up_cam - u])
+            w_all = np.concatenate([w, np.full(3, up_weight)])
+        x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
+        T = T @ se3.exp_one(x[:6])
+        bias = bias + x[6:]
+        H_data = (A * w[:, None]).T @ A
         last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": H_data}
     s, f = last["s"], last["f"]
     r_post = last["r"] - last["A"] @ last["x"]
@@ -127,6 +150,15 @@ def check_pose(
         H_data=last["H"],
         scale2=scale2,
     )
+
+
+def up_axis_with_jacobian(T_rack_cam: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The rack's +z axis in the camera frame (3,) and its Jacobian (3, 6) with respect to a right
+    perturbation (v, w) of `T_rack_cam`: u(T exp(δ)) = exp(-w) u ≈ u + u × w, so J = [0, hat(u)]."""
+    u = np.array(T_rack_cam[2, :3], dtype=np.float64)
+    J = np.zeros((3, 6))
+    J[:, 3:] = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    return u, J
 
 
 def crossing_y_candidates(
@@ -188,10 +220,10 @@ def pose_covariance(check: EdgeCheck, inflation: float, y_std_m: float | None, d
     correlated), plus the prior on the along-pipe position y (rack frame) with std `y_std_m` when
     y was not observed, plus `damping` so that directions nothing observes keep a finite variance.
     """
-    info = check.H_data / max(check.scale2 * inflation, 1e-12) + np.diag(damping)
+    info = check.H_data / max(check.scale2 * inflation, 1e-12)
+    info = info + np.diag(np.concatenate([damping, np.full(info.shape[0] - 6, 1.0)]))
     if y_std_m is not None:
         e_y = check.T_rack_cam[1, :3]  # rack y of a camera-frame translation: R[1, :] v
-        info = info.copy()
         info[:3, :3] += np.outer(e_y, e_y) / y_std_m**2
-    cov = np.linalg.inv(info)
+    cov = np.linalg.inv(info)[:6, :6]  # the edge offsets marginalised out
     return np.asarray(0.5 * (cov + cov.T))
