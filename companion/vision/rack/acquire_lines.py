@@ -44,12 +44,19 @@ class Segments:
                         self.contrast[keep])
 
 
+def downscale(gray: GrayImage, scale: float) -> GrayImage:
+    """`gray` resized by `scale` (area averaging); the same array when scale >= 1."""
+    if scale >= 1.0:
+        return gray
+    return np.asarray(cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+
 def detect_segments(
-    gray: GrayImage, camera: PinholeCamera, scale: float, min_length_px: float, min_contrast: float
+    gray: GrayImage, small: GrayImage, camera: PinholeCamera, scale: float, min_length_px: float, min_contrast: float
 ) -> Segments:
-    """LSD segments of `gray` (H, W) found at `scale` (0 < scale <= 1), at least `min_length_px` long
-    (full-resolution pixels) with |contrast| >= `min_contrast` grey levels."""
-    small = gray if scale >= 1.0 else cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    """LSD segments of `gray` (H, W) found in `small` (`gray` downscaled by `scale`, 0 < scale <= 1),
+    at least `min_length_px` long (full-resolution pixels) with |contrast| >= `min_contrast` grey
+    levels (measured in `gray`)."""
     lines = cv2.createLineSegmentDetector().detect(small)[0]
     if lines is None or len(lines) == 0:
         return _empty_segments()

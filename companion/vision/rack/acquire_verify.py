@@ -34,7 +34,8 @@ Float32Image = np.ndarray[Any, np.dtype[np.float32]]
 class EdgeCheck:
     """Outcome of `check_pose`: refined `T_rack_cam` (4x4); `num_samples` predicted limb samples;
     `agree_fraction` of them found and within the inlier distance; `pipe_samples` / `pipe_agree`
-    (M,) the same per pipe, `limb_samples` / `limb_agree` (2M,) per limb (2m, 2m+1: pipe m);
+    (M,) the same per pipe, `limb_samples` / `limb_agree` (2M,) per limb (2m, 2m+1: pipe m)
+    and `limb_polarity` (2M,) the polarity used (given or learnt, 0 = open);
     `residual_px` robust std of the agreeing residuals; `H_data` (8x8) the edge information AᵀWA
     of the last iteration over the pose (6) and the two edge offsets, and `scale2` the weighted
     residual variance (px²)."""
@@ -46,6 +47,7 @@ class EdgeCheck:
     pipe_agree: FloatArray
     limb_samples: FloatArray
     limb_agree: FloatArray
+    limb_polarity: FloatArray
     residual_px: float
     H_data: FloatArray
     scale2: float
@@ -75,35 +77,54 @@ def check_pose(
     """Refine `T_rack_cam` on the limbs of `pipes` (one iteration per search range) and score it.
 
     `pipe_polarity` (M,) is the tracker's polarity of each pipe's limbs (+1: brighter outward, -1:
-    darker outward, 0: either, e.g. a crossing pipe seen against other pipes); `damping` (6,) the
+    darker outward, 0: unknown, then each limb takes the sign most of its edges show in the first
+    iteration, or stays open when they disagree, e.g. a crossing pipe seen against other pipes);
+    the first iteration's open limbs take the polarity of their edges and count as known; `damping` (6,) the
     information of a zero-mean prior on each update. As the tracker does, two edge offsets (px
     along the outward normal, one per limb side) absorb the systematic shift of gradient-peak
     edges next to shaded limbs; without them the silhouettes read a little wide or narrow and the
     distance and the lateral position / roll about the pipes (nearly interchangeable from high
     above) come out biased. `up_cam` (3,), when given, is the autopilot's rack up axis in the
     camera frame, held with information `up_weight` (px² per rad²) against the rotation. Edges
-    count when their strength reaches a quarter of the median strength on the pipes of known
-    polarity (a tenth on the others: a pipe lying on pipes shows a weak step).
+    count when their strength reaches a fifth of the 90th percentile of the strengths on the
+    limbs of known polarity (a tenth on the others: a pipe lying on pipes shows a weak step):
+    texture, noise and shading never reach a fraction of a real silhouette.
     """
     T = np.array(T_rack_cam, dtype=np.float64, copy=True)
     M = pipes.radii.size
     last: dict[str, Any] = {}
+    # Per-limb polarity: the pipe's where known, else learnt from the first iteration's edges.
+    limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
+    learn = limb_pol == 0.0
     bias = np.zeros(2)
     prior8 = np.concatenate([damping, [1.0 / 0.5**2] * 2])
     for rng_px in ranges_px:
         s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
         n = s.uv.shape[0]
         if n == 0:
-            return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), float("inf"),
-                             np.zeros((8, 8)), 0.0)
-        pol = pipe_polarity[s.pipe]
+            return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
+                             float("inf"), np.zeros((8, 8)), 0.0)
+        pol = limb_pol[s.limb]
         meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold)
+        if np.any(learn):
+            # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
+            good = meas.found & learn[s.limb]
+            tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=2 * M)
+            mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=2 * M)
+            decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
+            limb_pol = np.where(decided, np.sign(tot), limb_pol)
+            learn = learn & ~decided
+            if np.any(decided):
+                pol = limb_pol[s.limb]
+                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold)
         # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
         found = meas.found
         ref = found & (pol != 0.0)
+        if not np.any(ref):
+            ref = found
         if np.any(ref):
-            frac = np.where(pol != 0.0, 0.25, 0.1)
-            found = found & (meas.strength >= frac * median_1d(meas.strength[ref]))
+            frac = np.where(pol != 0.0, 0.2, 0.1)
+            found = found & (meas.strength >= frac * float(np.percentile(meas.strength[ref], 90)))
         f = np.flatnonzero(found)
         J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
         A = np.zeros((f.size, 8))
@@ -146,6 +167,7 @@ def check_pose(
         pipe_agree=pipe_agree,
         limb_samples=limb_samples,
         limb_agree=limb_agree,
+        limb_polarity=limb_pol,
         residual_px=float(resid),
         H_data=last["H"],
         scale2=scale2,
