@@ -161,6 +161,7 @@ def main() -> None:
                                    "assign_ok": False, "locked": False, "track_ms": None}
             best = res.best
             if best is not None:
+                row["score"] = best.score
                 row["assign_ok"] = bool(not best.reversed and abs(best.T_rack_cam[0, 3] - T[0, 3]) < pitch_min / 2)
                 tr = RackTracker(model, CAMERA, RackTrackerConfig())
                 tr.reset(best.T_rack_cam)

@@ -174,6 +174,7 @@ def acquire_rack(
     damping = np.array([1.0 / 0.05**2] * 3 + [1.0 / 0.02**2] * 3)
     # The autopilot's tilt against the edges: edge rows count 1 / (edge_noise² × inflation) each.
     up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
+    h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
     checked: list[tuple[float, int, EdgeCheck, int]] = []
     img_f = gray.astype(np.float32)
     top = cands[0].prelim
@@ -184,8 +185,9 @@ def acquire_rack(
         # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
         chk = check_pose(img_f, camera, par,
                          c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
-                         cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight)
-        if not _credible(chk, cfg):
+                         cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
+                         prior.height_m, h_weight)
+        if not _credible(chk, cfg, prior):
             continue
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
         checked.append((chk.agree_fraction * explained, c.sign, chk, c.direction))
@@ -197,8 +199,9 @@ def acquire_rack(
         if checked and score >= cfg.ambiguity_ratio * checked[0][0] * 0.9:
             pol = np.full(n_par, -float(_polarity_of(chk, n_par)))
             chk2 = check_pose(img_f, camera, par, chk.T_rack_cam, pol, cfg.polish_ranges_px, cfg.samples_per_limb,
-                              cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight)
-            if _credible(chk2, cfg):
+                              cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
+                              prior.height_m, h_weight)
+            if _credible(chk2, cfg, prior):
                 score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
                 chk = chk2
         polished.append((score, sign, chk))
@@ -211,7 +214,9 @@ def acquire_rack(
         return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
                                  num_limbs)
     status = ""
-    if len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
+    if out[0].score < cfg.min_score:
+        status = f"best score {out[0].score:.2f} below {cfg.min_score:.2f}: the image is not explained"
+    elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
         status = f"ambiguous: {len(out)} hypotheses score alike"
     return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
 
@@ -245,7 +250,10 @@ def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
     return out
 
 
-def _credible(chk: EdgeCheck, cfg: AcquisitionConfig) -> bool:
+def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior) -> bool:
+    """Enough limb samples agree on enough pipes, tightly, at a height the measurement allows."""
+    if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
+        return False
     per_pipe = chk.pipe_agree / np.maximum(chk.pipe_samples, 1.0)
     good_pipes = int(np.count_nonzero((per_pipe >= cfg.min_pipe_agree) & (chk.pipe_samples >= cfg.samples_per_limb)))
     return (chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px
@@ -281,6 +289,7 @@ def _finish(
     y_observed = False
     n_all = pipes_all.radii.size
     if find_y and n_all > n_par:
+        h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
         span = 4.0 * prior.y_std_m
         ys = crossing_y_candidates(seg, T, pipes_all, np.arange(n_par, n_all), prior.y_m - span, prior.y_m + span,
                                    cfg.direction_tol_rad, 0.03, 3)
@@ -290,7 +299,7 @@ def _finish(
             Ty[1, 3] = y
             c = check_pose(img_f, camera, pipes_all, Ty, np.zeros(n_all), cfg.check_ranges_px,
                            cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
-                           up_cam, up_weight)
+                           up_cam, up_weight, prior.height_m, h_weight)
             # Both limbs of a crossing pipe must agree: one limb alone fits many positions.
             ls, la = c.limb_samples[2 * n_par:], c.limb_agree[2 * n_par:]
             seen = ls >= cfg.samples_per_limb / 2

@@ -36,10 +36,13 @@ class AcquisitionConfig:
     checked, those whose profile score reaches `check_score_ratio` times the best's. Decision: a
     hypothesis is `credible` when at least `min_agree_fraction` of its limb samples agree, its residual is below
     `max_residual_px` and `min_pipes` pipes have at least `min_pipe_agree` of their samples
-    agreeing; the best is `confident` when it is credible and every other credible hypothesis
+    agreeing; the best is `confident` when its score reaches `min_score` (most of the image's
+    pipe-like lines explained, most of its limbs seen) and every other credible hypothesis
     (another pipe assignment or direction, or a pose more than `distinct_m` / `distinct_rad`
     away) scores at most `ambiguity_ratio` times its score. `yaw_gate_sigma`: hypotheses further
-    than this many yaw standard deviations from a supplied heading are dropped.
+    than this many yaw standard deviations from a supplied heading are dropped, and
+    `height_gate_sigma`: those whose refined height is further than this many height standard
+    deviations from the measured one.
     `attitude_std_rad`: the roll / pitch error, which holds the refined tilt against
     `edge_noise_px`, the noise of one edge sample.
     `covariance_inflation` as the tracker's.
@@ -67,14 +70,16 @@ class AcquisitionConfig:
     margin_px: float = 6.0
     max_checked: int = 4
     check_score_ratio: float = 0.5
-    min_agree_fraction: float = 0.6
-    max_residual_px: float = 1.2
+    min_agree_fraction: float = 0.5
+    min_score: float = 0.35
+    max_residual_px: float = 1.5
     min_pipes: int = 2
     min_pipe_agree: float = 0.5
     ambiguity_ratio: float = 0.8
     distinct_m: float = 0.05
     distinct_rad: float = 0.035
     yaw_gate_sigma: float = 3.0
+    height_gate_sigma: float = 3.0
     attitude_std_rad: float = 0.0175
     edge_noise_px: float = 0.5
     covariance_inflation: float = 4.0

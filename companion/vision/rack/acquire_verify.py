@@ -73,6 +73,8 @@ def check_pose(
     damping: FloatArray,
     up_cam: FloatArray | None = None,
     up_weight: float = 0.0,
+    height_m: float | None = None,
+    height_weight: float = 0.0,
 ) -> EdgeCheck:
     """Refine `T_rack_cam` on the limbs of `pipes` (one iteration per search range) and score it.
 
@@ -85,7 +87,9 @@ def check_pose(
     edges next to shaded limbs; without them the silhouettes read a little wide or narrow and the
     distance and the lateral position / roll about the pipes (nearly interchangeable from high
     above) come out biased. `up_cam` (3,), when given, is the autopilot's rack up axis in the
-    camera frame, held with information `up_weight` (px² per rad²) against the rotation. Edges
+    camera frame, held with information `up_weight` (px² per rad²) against the rotation;
+    `height_m`, when given, the measured camera height (rack z, m), held with `height_weight`
+    (px² per m²): shadows and ground stripes can mimic a pipe pattern at another height. Edges
     count when their strength reaches a fifth of the 90th percentile of the strengths on the
     limbs of known polarity (a tenth on the others: a pipe lying on pipes shows a weak step):
     texture, noise and shading never reach a fraction of a real silhouette.
@@ -105,7 +109,8 @@ def check_pose(
             return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
                              float("inf"), np.zeros((8, 8)), 0.0)
         pol = limb_pol[s.limb]
-        meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold)
+        meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
+                            tangent_offset_px=1.5)
         if np.any(learn):
             # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
             good = meas.found & learn[s.limb]
@@ -116,7 +121,8 @@ def check_pose(
             learn = learn & ~decided
             if np.any(decided):
                 pol = limb_pol[s.limb]
-                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold)
+                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
+                            tangent_offset_px=1.5)
         # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
         found = meas.found
         ref = found & (pol != 0.0)
@@ -141,6 +147,13 @@ def check_pose(
             A_all = np.vstack([A, A_up])
             r_all = np.concatenate([r, up_cam - u])
             w_all = np.concatenate([w, np.full(3, up_weight)])
+        if height_m is not None and height_weight > 0:
+            # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
+            A_h = np.zeros((1, 8))
+            A_h[0, :3] = T[2, :3]
+            A_all = np.vstack([A_all, A_h])
+            r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
+            w_all = np.concatenate([w_all, [height_weight]])
         x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
         T = T @ se3.exp_one(x[:6])
         bias = bias + x[6:]
