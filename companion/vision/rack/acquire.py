@@ -254,10 +254,15 @@ def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior) -
     """Enough limb samples agree on enough pipes, tightly, at a height the measurement allows."""
     if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
         return False
-    per_pipe = chk.pipe_agree / np.maximum(chk.pipe_samples, 1.0)
-    good_pipes = int(np.count_nonzero((per_pipe >= cfg.min_pipe_agree) & (chk.pipe_samples >= cfg.samples_per_limb)))
-    return (chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px
-            and good_pipes >= cfg.min_pipes)
+    return chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px \
+        and _good_pipes(chk, cfg).size >= cfg.min_pipes
+
+
+def _good_pipes(chk: EdgeCheck, cfg: AcquisitionConfig) -> np.ndarray[Any, np.dtype[np.intp]]:
+    """Pipes both of whose limbs are in view (half a limb's samples or more) and agree (min_pipe_agree)."""
+    ls, la = chk.limb_samples, chk.limb_agree
+    ok = (ls >= 0.5 * cfg.samples_per_limb) & (la >= cfg.min_pipe_agree * np.maximum(ls, 1.0))
+    return np.flatnonzero(ok[0::2] & ok[1::2])
 
 
 def _distinct(hyps: list[RackHypothesis], cfg: AcquisitionConfig) -> list[RackHypothesis]:
@@ -314,8 +319,8 @@ def _finish(
     cov = pose_covariance(final, cfg.covariance_inflation, None if y_observed else prior.y_std_m, np.full(6, 1e-6))
     T_out.flags.writeable = False
     cov.flags.writeable = False
-    per_pipe = chk.pipe_agree[:n_par] / np.maximum(chk.pipe_samples[:n_par], 1.0)
-    good = np.flatnonzero((per_pipe >= cfg.min_pipe_agree) & (chk.pipe_samples[:n_par] >= cfg.samples_per_limb))
+    good = _good_pipes(chk, cfg)
+    good = good[good < n_par]
     ordered = tuple(int(m) for m in (good[::-1] if sign < 0 else good))
     return RackHypothesis(T_rack_cam=T_out, covariance=cov, score=score, pipes=ordered,
                           reversed=sign < 0, y_observed=y_observed, residual_px=chk.residual_px,

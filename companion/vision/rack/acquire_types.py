@@ -21,31 +21,30 @@ from companion.geometry import frames
 class AcquisitionConfig:
     """Tuning of `acquire_rack` (pixels at full resolution, metres, radians).
 
-    Lines: `line_scale` image scale LSD runs at; `min_segment_px` shortest segment kept;
-    `min_contrast` grey levels across a segment; `direction_tol_rad` how far a segment's plane
-    may miss the pipe direction; `merge_px` segments closer than this (at the image centre) form
-    one limb; `max_directions` pipe-direction candidates tried. Matching: `match_px` how far an
-    observed limb may lie from a predicted one; `min_limb_px` shortest predicted limb counted;
-    `alpha_std_rad` the attitude error about the pipe axis; `max_section_hypotheses` kept per
-    direction from the line segments. Sweep (`acquire_profile`): `profile_bin_px` angle bin of the
-    edge profile, `sweep_step_m` the lateral grid, `sweep_tol_px` how far a limb may lie from a
-    profile bin, `max_swept_hypotheses` kept per direction. Verification: `check_ranges_px` the
-    edge search ranges of the refinement iterations, `polish_ranges_px` those of the further
-    iterations the best hypotheses get; `samples_per_limb`, `edge_threshold`,
-    `inlier_px` as the tracker's; `margin_px` image border; at most `max_checked` hypotheses are
-    checked, those whose profile score reaches `check_score_ratio` times the best's. Decision: a
-    hypothesis is `credible` when at least `min_agree_fraction` of its limb samples agree, its residual is below
-    `max_residual_px` and `min_pipes` pipes have at least `min_pipe_agree` of their samples
-    agreeing; the best is `confident` when its score reaches `min_score` (most of the image's
-    pipe-like lines explained, most of its limbs seen) and every other credible hypothesis
-    (another pipe assignment or direction, or a pose more than `distinct_m` / `distinct_rad`
-    away) scores at most `ambiguity_ratio` times its score. `yaw_gate_sigma`: hypotheses further
-    than this many yaw standard deviations from a supplied heading are dropped, and
-    `height_gate_sigma`: those whose refined height is further than this many height standard
-    deviations from the measured one.
-    `attitude_std_rad`: the roll / pitch error, which holds the refined tilt against
-    `edge_noise_px`, the noise of one edge sample.
-    `covariance_inflation` as the tracker's.
+    Lines: `line_scale` the image scale LSD and the edge profile run at; `min_segment_px` the
+    shortest segment kept; `min_contrast` grey levels across a segment; `direction_tol_rad` how
+    far a segment's plane may miss the pipe direction; `merge_px` segments closer than this (at
+    the image centre) form one limb; `max_directions` pipe-direction candidates tried.
+    Pairing (`acquire_match`): `match_px` how far an observed limb may lie from a predicted one;
+    `min_limb_px` the shortest predicted limb counted; `alpha_std_rad` the attitude error about
+    the pipe axis; `max_section_hypotheses` kept per direction. Sweep (`acquire_profile`):
+    `profile_bin_px` the angle bin of the edge profile, `sweep_step_m` the lateral grid,
+    `sweep_tol_px` how far a limb may lie from a profile bin, `max_swept_hypotheses` kept per
+    direction. Verification (`acquire_verify`): at most `max_checked` proposals are checked,
+    those whose profile score reaches `check_score_ratio` times the best's, one refinement
+    iteration per entry of `check_ranges_px` (edge search ranges), and the contenders get the
+    further iterations `polish_ranges_px`; `samples_per_limb`, `edge_threshold`, `inlier_px` as
+    the tracker's; `margin_px` the image border; `attitude_std_rad` the roll / pitch error and
+    `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height
+    against the edges. Decision: a hypothesis is credible when at least `min_agree_fraction` of
+    its limb samples agree, its residual is below `max_residual_px`, `min_pipes` pipes have both
+    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing, and its height
+    is within `height_gate_sigma` standard deviations of the measured one; hypotheses further
+    than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The
+    best is `confident` when its score reaches `min_score` (most of the image's pipe-like lines
+    explained, most of its limbs seen) and every other credible hypothesis (another pipe
+    assignment or direction, or a pose more than `distinct_m` / `distinct_rad` away) scores at
+    most `ambiguity_ratio` times its score. `covariance_inflation` as the tracker's.
     """
 
     line_scale: float = 0.4

@@ -122,7 +122,7 @@ def check_pose(
             if np.any(decided):
                 pol = limb_pol[s.limb]
                 meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
-                            tangent_offset_px=1.5)
+                                    tangent_offset_px=1.5)
         # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
         found = meas.found
         ref = found & (pol != 0.0)
