@@ -254,8 +254,12 @@ def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior) -
     """Enough limb samples agree on enough pipes, tightly, at a height the measurement allows."""
     if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
         return False
+    # A pipe whose two limbs are in view but show (almost) no edge is not where the pose puts it.
+    ls, la = chk.limb_samples, chk.limb_agree
+    shown = (ls[0::2] >= 0.5 * cfg.samples_per_limb) & (ls[1::2] >= 0.5 * cfg.samples_per_limb)
+    missing = shown & (la[0::2] + la[1::2] < cfg.missing_pipe_agree * (ls[0::2] + ls[1::2]))
     return chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px \
-        and _good_pipes(chk, cfg).size >= cfg.min_pipes
+        and _good_pipes(chk, cfg).size >= cfg.min_pipes and not np.any(missing)
 
 
 def _good_pipes(chk: EdgeCheck, cfg: AcquisitionConfig) -> np.ndarray[Any, np.dtype[np.intp]]:

@@ -38,7 +38,8 @@ class AcquisitionConfig:
     `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height
     against the edges. Decision: a hypothesis is credible when at least `min_agree_fraction` of
     its limb samples agree, its residual is below `max_residual_px`, `min_pipes` pipes have both
-    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing, and its height
+    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing, no pipe with
+    both limbs in view has less than `missing_pipe_agree` of its samples agreeing, and its height
     is within `height_gate_sigma` standard deviations of the measured one; hypotheses further
     than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The
     best is `confident` when its score reaches `min_score` (most of the image's pipe-like lines
@@ -74,6 +75,7 @@ class AcquisitionConfig:
     max_residual_px: float = 1.5
     min_pipes: int = 2
     min_pipe_agree: float = 0.5
+    missing_pipe_agree: float = 0.2
     ambiguity_ratio: float = 0.8
     distinct_m: float = 0.05
     distinct_rad: float = 0.035
