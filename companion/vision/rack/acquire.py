@@ -39,7 +39,13 @@ from companion.vision.rack.acquire_lines import (
     visible_length_px,
 )
 from companion.vision.rack.acquire_match import section_hypotheses
-from companion.vision.rack.acquire_profile import PencilProfile, pencil_profile, profile_scores, sweep_section
+from companion.vision.rack.acquire_profile import (
+    PencilProfile,
+    pencil_profile,
+    profile_scores,
+    refine_on_peaks,
+    sweep_section,
+)
 from companion.vision.rack.acquire_types import (
     AcquisitionConfig,
     AcquisitionPrior,
@@ -158,8 +164,9 @@ def acquire_rack(
         for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
                                 di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
                                 cfg.max_swept_hypotheses, cfg.distinct_m):
-            cands.append(_Candidate(_pose_from_section(sh.x_m, sh.z_m, 0.0, sh.sign, limbs, prior.y_m), sh.sign,
-                                    0, sh.score, k))
+            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
+                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
+            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
         if limbs.theta.size >= 2:
             for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
                                         di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
@@ -176,6 +183,8 @@ def acquire_rack(
     up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
     h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
     checked: list[tuple[float, int, EdgeCheck, int]] = []
+    n_all = pipes_all.radii.size
+    y_lo, y_hi = prior.y_m - 4.0 * prior.y_std_m, prior.y_m + 4.0 * prior.y_std_m
     img_f = gray.astype(np.float32)
     top = cands[0].prelim
     for c in cands[: cfg.max_checked]:
@@ -187,6 +196,18 @@ def acquire_rack(
                          c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
                          cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                          prior.height_m, h_weight)
+        if not _credible(chk, cfg, prior) and n_all > n_par:
+            # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
+            # the segments along it) and check again with every pipe.
+            ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
+                                       cfg.direction_tol_rad, 0.03, 1)
+            if ys.size:
+                T_y = c.T_rack_cam.copy()
+                T_y[1, 3] = ys[0]
+                pol = np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])
+                chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
+                                 cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
+                                 prior.height_m, h_weight)
         if not _credible(chk, cfg, prior):
             continue
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
@@ -197,8 +218,12 @@ def acquire_rack(
     polished: list[tuple[float, int, EdgeCheck]] = []
     for score, sign, chk, k in checked:
         if checked and score >= cfg.ambiguity_ratio * checked[0][0] * 0.9:
+            with_extra = chk.pipe_samples.size > n_par  # checked with the crossing pipe placed
             pol = np.full(n_par, -float(_polarity_of(chk, n_par)))
-            chk2 = check_pose(img_f, camera, par, chk.T_rack_cam, pol, cfg.polish_ranges_px, cfg.samples_per_limb,
+            if with_extra:
+                pol = np.concatenate([pol, np.zeros(n_all - n_par)])
+            chk2 = check_pose(img_f, camera, pipes_all if with_extra else par, chk.T_rack_cam, pol,
+                              cfg.polish_ranges_px, cfg.samples_per_limb,
                               cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
                               prior.height_m, h_weight)
             if _credible(chk2, cfg, prior):

@@ -25,7 +25,7 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.vision.rack.acquire_lines import LimbClusters
-from companion.vision.rack.acquire_match import predict_limb_angles
+from companion.vision.rack.acquire_match import predict_limb_angles, refine_section
 
 GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
 
@@ -176,3 +176,28 @@ def sweep_section(
         if all(h.sign != k.sign or abs(h.x_m - k.x_m) >= separation_m for k in kept):
             kept.append(h)
     return kept
+
+
+def refine_on_peaks(
+    profile: PencilProfile, limbs: LimbClusters, h: SweptHypothesis, x_axes: FloatArray, radii: FloatArray,
+    theta_range: tuple[float, float], height_m: float, height_std_m: float, alpha_std_rad: float, tol_rad: float,
+    angle_std_rad: float,
+) -> tuple[float, float, float]:
+    """(x, z, alpha) of a swept position refined by Gauss-Newton on the profile peaks its limbs fall on.
+
+    The sweep's grid is coarse in height (one std); the limb widths, hence the distance, need the
+    peaks' positions, and a start a few centimetres off in height sends the edge check astray.
+    """
+    th, vis = predict_limb_angles(np.array([h.x_m]), np.array([h.z_m]), np.zeros(1), np.array([float(h.sign)]),
+                                  x_axes, radii)
+    peaks = profile.peak_theta
+    if peaks.size == 0:
+        return h.x_m, h.z_m, 0.0
+    err = np.abs(th[0][:, None] - peaks[None, :])
+    k = np.argmin(err, axis=1)
+    ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol_rad)
+    matches = np.where(ok, k, -1).astype(np.intp)
+    peak_limbs = LimbClusters(theta=peaks, polarity=np.zeros(peaks.size), length_px=profile.peak_value,
+                              contrast=profile.peak_value, d=limbs.d, e_x=limbs.e_x, e_z=limbs.e_z)
+    return refine_section(h.x_m, h.z_m, 0.0, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
+                          height_std_m, alpha_std_rad, angle_std_rad)

@@ -101,7 +101,7 @@ def check_pose(
     limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
     learn = limb_pol == 0.0
     bias = np.zeros(2)
-    prior8 = np.concatenate([damping, [1.0 / 0.5**2] * 2])
+    prior8 = np.concatenate([damping, [1.0 / 0.1**2] * 2])
     for rng_px in ranges_px:
         s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
         n = s.uv.shape[0]
