@@ -224,8 +224,10 @@ def summary(rows: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, A
                        "max": float(ms.max())},
         "first_track_ms_median": float(np.median(tr)) if tr.size else None,
         "targets": {"correct_rate": 0.98, "confident_wrong_rate": 0.002, "acquire_ms_median": 30.0},
+        "confident_wrong_views": [[r["view"], r["appearance"]] for r in rows if r["confident"] and not r["assign_ok"]],
         "failures_sample": fails,
-        "machine": {"python": platform.python_version(), "opencv": cv2.__version__, "threads": 1},
+        "machine": {"python": platform.python_version(), "opencv": cv2.__version__, "threads": 1,
+                    "cpus": os.cpu_count(), "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
     }
 
 
