@@ -268,3 +268,16 @@ def test_single_featureless_pipe_is_rejected(rng: np.random.Generator) -> None:
     img = RackScene(lone, seed=7, config=RackSceneConfig(spots_per_m2=0.0)).render(T, CAM, noise_std=4.0, rng=rng)
     res = acquire_rack(img, five_pipes(), CAM, _prior(T, 0.01, 0.0, None))
     assert not res.confident
+
+
+def test_longest_agreeing_run_bridges_short_gaps_within_a_limb() -> None:
+    from companion.vision.rack.acquire_verify import _longest_runs
+
+    limb = np.array([0] * 10 + [1] * 12 + [3] * 4)
+    agree = np.array([1, 1, 0, 0, 0, 0, 0, 1, 1, 1,  # limb 0: a five-sample gap is not bridged
+                      1, 1, 1, 0, 0, 1, 1, 1, 0, 0, 0, 0,  # limb 1: a two-sample gap is
+                      0, 0, 0, 0], dtype=bool)
+    runs = _longest_runs(limb, agree, 4)
+    assert runs[0] == 3  # samples 7-9
+    assert runs[1] == 8  # samples 10-17
+    assert runs[2] == 0 and runs[3] == 0

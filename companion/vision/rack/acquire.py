@@ -196,7 +196,7 @@ def acquire_rack(
                          c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
                          cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                          prior.height_m, h_weight)
-        if not _credible(chk, cfg, prior) and n_all > n_par:
+        if not _credible(chk, cfg, prior, up_cam) and n_all > n_par:
             # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
             # the segments along it) and check again with every pipe.
             ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
@@ -208,7 +208,7 @@ def acquire_rack(
                 chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
                                  cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                                  prior.height_m, h_weight)
-        if not _credible(chk, cfg, prior):
+        if not _credible(chk, cfg, prior, up_cam):
             continue
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
         checked.append((chk.agree_fraction * explained, c.sign, chk, c.direction))
@@ -226,7 +226,7 @@ def acquire_rack(
                               cfg.polish_ranges_px, cfg.samples_per_limb,
                               cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
                               prior.height_m, h_weight)
-            if _credible(chk2, cfg, prior):
+            if _credible(chk2, cfg, prior, up_cam):
                 score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
                 chk = chk2
         polished.append((score, sign, chk))
@@ -239,8 +239,15 @@ def acquire_rack(
         return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
                                  num_limbs)
     status = ""
+    best = out[0].T_rack_cam
+    tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
     if out[0].score < cfg.min_score:
         status = f"best score {out[0].score:.2f} below {cfg.min_score:.2f}: the image is not explained"
+    elif abs(best[2, 3] - prior.height_m) > cfg.confident_sigma * prior.height_std_m \
+            or tilt > cfg.confident_sigma * cfg.attitude_std_rad:
+        # Credible but in the tails of the autopilot's height or tilt: where the lateral / roll
+        # confusion and shadows produce fits that look right. Offered, not trusted.
+        status = "best pose strays from the autopilot's height or tilt"
     elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
         status = f"ambiguous: {len(out)} hypotheses score alike"
     return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
@@ -275,9 +282,14 @@ def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
     return out
 
 
-def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior) -> bool:
-    """Enough limb samples agree on enough pipes, tightly, at a height the measurement allows."""
+def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior, up_cam: FloatArray) -> bool:
+    """Enough limb samples agree on enough pipes, tightly, at a height and tilt the autopilot allows."""
     if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
+        return False
+    # Sliding sideways and rolling about the pipes look alike from high above: a pose that buys
+    # its fit with a tilt the autopilot contradicts is that confusion, not the rack.
+    tilt = float(np.arccos(np.clip(chk.T_rack_cam[2, :3] @ up_cam, -1.0, 1.0)))
+    if tilt > cfg.tilt_gate_sigma * cfg.attitude_std_rad:
         return False
     # A pipe whose two limbs are in view but show (almost) no edge is not where the pose puts it.
     ls, la = chk.limb_samples, chk.limb_agree
@@ -288,9 +300,11 @@ def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior) -
 
 
 def _good_pipes(chk: EdgeCheck, cfg: AcquisitionConfig) -> np.ndarray[Any, np.dtype[np.intp]]:
-    """Pipes both of whose limbs are in view (half a limb's samples or more) and agree (min_pipe_agree)."""
+    """Pipes both of whose limbs are in view (half a limb's samples or more) and agree (min_pipe_agree,
+    with a run of consecutive agreeing samples of at least min_limb_run of the limb)."""
     ls, la = chk.limb_samples, chk.limb_agree
     ok = (ls >= 0.5 * cfg.samples_per_limb) & (la >= cfg.min_pipe_agree * np.maximum(ls, 1.0))
+    ok &= chk.limb_run >= cfg.min_limb_run * ls
     return np.flatnonzero(ok[0::2] & ok[1::2])
 
 

@@ -38,12 +38,15 @@ class AcquisitionConfig:
     `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height
     against the edges. Decision: a hypothesis is credible when at least `min_agree_fraction` of
     its limb samples agree, its residual is below `max_residual_px`, `min_pipes` pipes have both
-    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing, no pipe with
-    both limbs in view has less than `missing_pipe_agree` of its samples agreeing, and its height
-    is within `height_gate_sigma` standard deviations of the measured one; hypotheses further
+    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing (and a run of
+    consecutive agreeing samples over at least `min_limb_run` of the limb), no pipe with
+    both limbs in view has less than `missing_pipe_agree` of its samples agreeing, its height
+    is within `height_gate_sigma` standard deviations of the measured one and its tilt within
+    `tilt_gate_sigma` attitude standard deviations of the autopilot's; hypotheses further
     than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The
     best is `confident` when its score reaches `min_score` (most of the image's pipe-like lines
-    explained, most of its limbs seen) and every other credible hypothesis (another pipe
+    explained, most of its limbs seen), its height and tilt are within `confident_sigma`
+    standard deviations of the autopilot's, and every other credible hypothesis (another pipe
     assignment or direction, or a pose more than `distinct_m` / `distinct_rad` away) scores at
     most `ambiguity_ratio` times its score. `covariance_inflation` as the tracker's.
     """
@@ -76,11 +79,14 @@ class AcquisitionConfig:
     min_pipes: int = 2
     min_pipe_agree: float = 0.5
     missing_pipe_agree: float = 0.2
+    min_limb_run: float = 0.5
     ambiguity_ratio: float = 0.8
     distinct_m: float = 0.05
     distinct_rad: float = 0.035
     yaw_gate_sigma: float = 3.0
     height_gate_sigma: float = 3.0
+    tilt_gate_sigma: float = 3.0
+    confident_sigma: float = 2.0
     attitude_std_rad: float = 0.0175
     edge_noise_px: float = 0.5
     covariance_inflation: float = 4.0

@@ -35,7 +35,9 @@ class EdgeCheck:
     """Outcome of `check_pose`: refined `T_rack_cam` (4x4); `num_samples` predicted limb samples;
     `agree_fraction` of them found and within the inlier distance; `pipe_samples` / `pipe_agree`
     (M,) the same per pipe, `limb_samples` / `limb_agree` (2M,) per limb (2m, 2m+1: pipe m)
-    and `limb_polarity` (2M,) the polarity used (given or learnt, 0 = open);
+    and `limb_polarity` (2M,) the polarity used (given or learnt, 0 = open), `limb_run` (2M,)
+    the longest run of consecutive agreeing samples along each limb (a real limb agrees over
+    long stretches; a grating or a texture crossing the predicted line agrees in short bursts);
     `residual_px` robust std of the agreeing residuals; `H_data` (8x8) the edge information AᵀWA
     of the last iteration over the pose (6) and the two edge offsets, and `scale2` the weighted
     residual variance (px²)."""
@@ -48,9 +50,42 @@ class EdgeCheck:
     limb_samples: FloatArray
     limb_agree: FloatArray
     limb_polarity: FloatArray
+    limb_run: FloatArray
     residual_px: float
     H_data: FloatArray
     scale2: float
+
+
+def _longest_runs(limb: Any, agree: Any, n_limbs: int) -> FloatArray:
+    """Longest run of consecutive True in `agree` (N,) within each limb (samples ordered along their limb),
+    gaps of up to four samples (a rust spot on the limb, a few missed edges) bridged."""
+    out = np.zeros(n_limbs)
+    if agree.size == 0:
+        return out
+    n = agree.size
+    idx = np.arange(n)
+
+    def shifted(a: Any, k: int) -> Any:
+        j = idx + k
+        ok = (j >= 0) & (j < n)
+        jj = np.clip(j, 0, n - 1)
+        return ok & (limb[jj] == limb) & a[jj]
+
+    # Closing: dilate by two samples, then erode by two (within the limb).
+    dil = agree | shifted(agree, -1) | shifted(agree, 1) | shifted(agree, -2) | shifted(agree, 2)
+    ero = dil.copy()
+    for k in (-2, -1, 1, 2):
+        j = idx + k
+        inside = (j >= 0) & (j < n) & (limb[np.clip(j, 0, n - 1)] == limb)
+        ero &= ~inside | dil[np.clip(j, 0, n - 1)]
+    agree = ero
+    # A run breaks where the flag is false or the limb changes; label runs and count their lengths.
+    start = np.ones(agree.size, dtype=bool)
+    start[1:] = (limb[1:] != limb[:-1]) | ~agree[:-1]
+    run_id = np.cumsum(start) - 1
+    lengths = np.bincount(run_id, weights=agree.astype(np.float64))
+    np.maximum.at(out, limb[start], lengths[run_id[start]])
+    return out
 
 
 def subset_pipes(pipes: PipeArrays, index: Any) -> PipeArrays:
@@ -101,13 +136,13 @@ def check_pose(
     limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
     learn = limb_pol == 0.0
     bias = np.zeros(2)
-    prior8 = np.concatenate([damping, [1.0 / 0.1**2] * 2])
+    prior8 = np.concatenate([damping, [1.0 / 1.0**2] * 2])
     for rng_px in ranges_px:
         s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
         n = s.uv.shape[0]
         if n == 0:
             return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
-                             float("inf"), np.zeros((8, 8)), 0.0)
+                             np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
         pol = limb_pol[s.limb]
         meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
                             tangent_offset_px=1.5)
@@ -181,6 +216,7 @@ def check_pose(
         limb_samples=limb_samples,
         limb_agree=limb_agree,
         limb_polarity=limb_pol,
+        limb_run=_longest_runs(s.limb, agree, 2 * M),
         residual_px=float(resid),
         H_data=last["H"],
         scale2=scale2,
