@@ -274,10 +274,10 @@ def test_longest_agreeing_run_bridges_short_gaps_within_a_limb() -> None:
     from companion.vision.rack.acquire_verify import _longest_runs
 
     limb = np.array([0] * 10 + [1] * 12 + [3] * 4)
-    agree = np.array([1, 1, 0, 0, 0, 0, 0, 1, 1, 1,  # limb 0: a five-sample gap is not bridged
+    agree = np.array([1, 1, 0, 0, 0, 1, 0, 1, 1, 1,  # limb 0: a three-sample gap stays, a one-sample gap is bridged
                       1, 1, 1, 0, 0, 1, 1, 1, 0, 0, 0, 0,  # limb 1: a two-sample gap is
                       0, 0, 0, 0], dtype=bool)
     runs = _longest_runs(limb, agree, 4)
-    assert runs[0] == 3  # samples 7-9
+    assert runs[0] == 5  # samples 5-9 (sample 6 bridged); samples 2-4 break the run
     assert runs[1] == 8  # samples 10-17
     assert runs[2] == 0 and runs[3] == 0

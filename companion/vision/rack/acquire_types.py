@@ -86,7 +86,7 @@ class AcquisitionConfig:
     yaw_gate_sigma: float = 3.0
     height_gate_sigma: float = 3.0
     tilt_gate_sigma: float = 3.0
-    confident_sigma: float = 2.0
+    confident_sigma: float = 2.5
     attitude_std_rad: float = 0.0175
     edge_noise_px: float = 0.5
     covariance_inflation: float = 4.0

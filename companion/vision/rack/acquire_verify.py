@@ -58,7 +58,7 @@ class EdgeCheck:
 
 def _longest_runs(limb: Any, agree: Any, n_limbs: int) -> FloatArray:
     """Longest run of consecutive True in `agree` (N,) within each limb (samples ordered along their limb),
-    gaps of up to four samples (a rust spot on the limb, a few missed edges) bridged."""
+    gaps of up to two samples (a rust spot on the limb, a missed edge) bridged."""
     out = np.zeros(n_limbs)
     if agree.size == 0:
         return out
@@ -71,10 +71,10 @@ def _longest_runs(limb: Any, agree: Any, n_limbs: int) -> FloatArray:
         jj = np.clip(j, 0, n - 1)
         return ok & (limb[jj] == limb) & a[jj]
 
-    # Closing: dilate by two samples, then erode by two (within the limb).
-    dil = agree | shifted(agree, -1) | shifted(agree, 1) | shifted(agree, -2) | shifted(agree, 2)
+    # Closing: dilate by one sample, then erode by one (within the limb).
+    dil = agree | shifted(agree, -1) | shifted(agree, 1)
     ero = dil.copy()
-    for k in (-2, -1, 1, 2):
+    for k in (-1, 1):
         j = idx + k
         inside = (j >= 0) & (j < n) & (limb[np.clip(j, 0, n - 1)] == limb)
         ero &= ~inside | dil[np.clip(j, 0, n - 1)]
