@@ -183,6 +183,7 @@ def acquire_rack(
     up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
     h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
     checked: list[tuple[float, int, EdgeCheck, int]] = []
+    rivals: list[tuple[float, int, FloatArray]] = []
     n_all = pipes_all.radii.size
     y_lo, y_hi = prior.y_m - 4.0 * prior.y_std_m, prior.y_m + 4.0 * prior.y_std_m
     img_f = gray.astype(np.float32)
@@ -208,9 +209,11 @@ def acquire_rack(
                 chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
                                  cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                                  prior.height_m, h_weight)
-        if not _credible(chk, cfg, prior, up_cam):
-            continue
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
+        if not _credible(chk, cfg, prior, up_cam):
+            # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
+            rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam))
+            continue
         checked.append((chk.agree_fraction * explained, c.sign, chk, c.direction))
     checked.sort(key=lambda sc: -sc[0])
     # Polish the contenders: the lateral position and the roll about the pipes are nearly
@@ -250,6 +253,10 @@ def acquire_rack(
         status = "best pose strays from the autopilot's height or tilt"
     elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
         status = f"ambiguous: {len(out)} hypotheses score alike"
+    elif any(s > cfg.ambiguity_ratio * out[0].score
+             and ((sign < 0) != out[0].reversed or abs(T[0, 3] - best[0, 3]) >= cfg.distinct_m)
+             for s, sign, T in rivals):
+        status = "ambiguous: a rejected pose fits about as well"
     return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
 
 

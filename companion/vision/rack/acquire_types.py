@@ -48,7 +48,9 @@ class AcquisitionConfig:
     explained, most of its limbs seen), its height and tilt are within `confident_sigma`
     standard deviations of the autopilot's, and every other credible hypothesis (another pipe
     assignment or direction, or a pose more than `distinct_m` / `distinct_rad` away) scores at
-    most `ambiguity_ratio` times its score. `covariance_inflation` as the tracker's.
+    most `ambiguity_ratio` times its score, nor does any checked pose that failed credibility
+    (a near miss of the truth is a reason for doubt, not a reason to trust the other).
+    `covariance_inflation` as the tracker's.
     """
 
     line_scale: float = 0.4
@@ -75,7 +77,7 @@ class AcquisitionConfig:
     check_score_ratio: float = 0.5
     min_agree_fraction: float = 0.5
     min_score: float = 0.35
-    max_residual_px: float = 1.5
+    max_residual_px: float = 1.0
     min_pipes: int = 2
     min_pipe_agree: float = 0.5
     missing_pipe_agree: float = 0.2
