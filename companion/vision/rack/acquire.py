@@ -188,9 +188,12 @@ def acquire_rack(
     y_lo, y_hi = prior.y_m - 4.0 * prior.y_std_m, prior.y_m + 4.0 * prior.y_std_m
     img_f = gray.astype(np.float32)
     top = cands[0].prelim
-    for c in cands[: cfg.max_checked]:
-        if c.prelim < cfg.check_score_ratio * top:
-            break
+    to_check = [c for c in cands[: cfg.max_checked] if c.prelim >= cfg.check_score_ratio * top]
+    # The best proposal of the other direction of travel is always checked too: a rack (or the part
+    # in view) that looks the same both ways must come out ambiguous, not as the first one found.
+    for sign in {c.sign for c in cands} - {c.sign for c in to_check}:
+        to_check.append(next(c for c in cands if c.sign == sign))
+    for c in to_check:
         # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
         # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
         chk = check_pose(img_f, camera, par,

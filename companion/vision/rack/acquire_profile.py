@@ -188,16 +188,20 @@ def refine_on_peaks(
     The sweep's grid is coarse in height (one std); the limb widths, hence the distance, need the
     peaks' positions, and a start a few centimetres off in height sends the edge check astray.
     """
-    th, vis = predict_limb_angles(np.array([h.x_m]), np.array([h.z_m]), np.zeros(1), np.array([float(h.sign)]),
-                                  x_axes, radii)
     peaks = profile.peak_theta
     if peaks.size == 0:
         return h.x_m, h.z_m, 0.0
-    err = np.abs(th[0][:, None] - peaks[None, :])
-    k = np.argmin(err, axis=1)
-    ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol_rad)
-    matches = np.where(ok, k, -1).astype(np.intp)
     peak_limbs = LimbClusters(theta=peaks, polarity=np.zeros(peaks.size), length_px=profile.peak_value,
                               contrast=profile.peak_value, d=limbs.d, e_x=limbs.e_x, e_z=limbs.e_z)
-    return refine_section(h.x_m, h.z_m, 0.0, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
-                          height_std_m, alpha_std_rad, angle_std_rad)
+    x, z, a = h.x_m, h.z_m, 0.0
+    # Coarse to fine: a height a few per cent off moves the outer limbs by more than the final tolerance.
+    for tol in (2.5 * tol_rad, tol_rad):
+        th, vis = predict_limb_angles(np.array([x]), np.array([z]), np.array([a]), np.array([float(h.sign)]),
+                                      x_axes, radii)
+        err = np.abs(th[0][:, None] - peaks[None, :])
+        k = np.argmin(err, axis=1)
+        ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol)
+        matches = np.where(ok, k, -1).astype(np.intp)
+        x, z, a = refine_section(x, z, a, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
+                                 height_std_m, alpha_std_rad, angle_std_rad)
+    return x, z, a
