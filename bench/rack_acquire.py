@@ -1,0 +1,235 @@
+"""Benchmark: rack acquisition from one image, no start pose. Prints ONE JSON object.
+
+Views (seeded): a rack from `missions/racks/` or a parallel rack of 2-5 pipes (radii 15-20 cm,
+10 cm gaps, 10 m long); the camera 1.5-4 m above the pipe tops, up to 1.5 m to the side of the
+rack's middle, anywhere along it, heading (yaw) within ±60 deg of the pipes, roll and pitch
+within ±5 deg; 720x480, f = 630, Gaussian noise (4 grey levels). The acquirer is given the roll
+and pitch with 1 deg noise, the height with 5 % noise (and that as its std), the along-pipe
+position y with 0.5 m noise (std 1 m), and, unless `--yaw-std-deg 0`, the heading with that much
+noise. Each view is rendered with the appearance models asked for (`default`: RackScene;
+`field`: FieldRackScene, the grounds cycling through grating, concrete, natural).
+
+Per attempt: `acquire_rack` is timed (one thread). Outcomes: `confident` or not; the pipe
+assignment is right when the best hypothesis has the true direction of travel and its x is
+within half the narrowest pipe pitch of the truth (a wrong pipe or direction moves it by a whole
+pitch or flips it); it locks when `RackTracker.reset(best) + track(same image)` ends within
+3 cm in x and z and 1 deg in attitude of the truth. Correct = confident, assignment right and
+locked. Confident wrong = confident with a wrong assignment. No lock = not confident. Rates are
+over the attempts where at least two parallel pipes are fully in view (both limbs inside the
+image over at least 150 px, after occlusion) and, separately, over all attempts.
+
+Usage: python bench/rack_acquire.py [--views 500] [--appearance default|field|both] [--seed 1]
+                                    [--yaw-std-deg 20]
+"""
+
+from __future__ import annotations
+
+import os
+
+# Single-threaded measurement.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import glob  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from typing import Any  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from companion.camera import PinholeCamera  # noqa: E402
+from companion.geometry import frames, se3, so3  # noqa: E402
+from companion.sim.rack_scene import RackScene  # noqa: E402
+from companion.vision.rack import (  # noqa: E402
+    AcquisitionPrior,
+    RackModel,
+    RackTracker,
+    RackTrackerConfig,
+    acquire_rack,
+)
+from companion.vision.rack.limbs import sample_limbs  # noqa: E402
+
+CAMERA = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+RADII = (0.15, 0.20, 0.15, 0.175, 0.20)
+NOISE_STD = 4.0
+FIELD_GROUNDS = ("grating", "concrete", "natural")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def racks() -> list[tuple[str, RackModel]]:
+    paths = sorted(glob.glob(os.path.join(ROOT, "missions/racks/*.toml")))
+    out = [(os.path.basename(p), RackModel.load(p)) for p in paths]
+    for n in range(2, 6):
+        out.append((f"parallel_{n}", RackModel.parallel(radii=RADII[:n], gaps=[0.10] * (n - 1), length=10.0)))
+    return out
+
+
+def field_scene_class() -> Any:
+    try:
+        from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
+    except ImportError:
+        sys.exit("bench/rack_acquire.py: --appearance field needs companion.sim.rack_scene_field (branch rack)")
+    return FieldRackScene, FieldSceneConfig
+
+
+def fully_in_view(T: np.ndarray, model: RackModel) -> int:
+    """Parallel pipes whose two limbs are both in the image over >= 150 px (after occlusion)."""
+    pipes = model.pipe_arrays()
+    s = sample_limbs(T, CAMERA, pipes, 32, 4.0, 12.0, 0.1, 3.0)
+    n = 0
+    for m in range(model.num_parallel):
+        ok = True
+        for limb in (2 * m, 2 * m + 1):
+            seg = np.flatnonzero(s.segment_limb == limb)
+            if seg.size == 0:
+                ok = False
+                break
+            a, b = s.segments_uv[seg[0]]
+            vis = np.count_nonzero(s.limb == limb) / 32.0
+            ok = ok and float(np.hypot(*(b - a))) * vis >= 150.0
+        n += int(ok)
+    return n
+
+
+def random_view(rng: np.random.Generator, model: RackModel) -> tuple[np.ndarray, float, float, float]:
+    """True T_rack_cam and the body roll, pitch, yaw (rad) of one random view."""
+    par = model.pipe_arrays()
+    n = model.num_parallel
+    width = float(par.starts[n - 1, 0] + par.radii[n - 1])
+    top = float(2.0 * max(model.radii))
+    roll, pitch = rng.uniform(-np.deg2rad(5.0), np.deg2rad(5.0), 2)
+    yaw = rng.uniform(-np.deg2rad(60.0), np.deg2rad(60.0))
+    T_ned_body = se3.make(frames.rotation_from_euler_zyx(roll, pitch, yaw), np.zeros(3))
+    T = frames.T_rack_cam_from_T_ned_body(T_ned_body, frames.default_T_ned_rack(), frames.default_T_body_cam())
+    T[:3, 3] = [width / 2 + rng.uniform(-1.5, 1.5), rng.uniform(1.5, model.length - 1.5), top + rng.uniform(1.5, 4.0)]
+    return T, float(roll), float(pitch), float(yaw)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--views", type=int, default=500)
+    ap.add_argument("--appearance", choices=("default", "field", "both"), default="both")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--yaw-std-deg", type=float, default=20.0)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    kinds = ["default", "field"] if args.appearance == "both" else [args.appearance]
+    field_cls = field_scene_class() if "field" in kinds else None
+    rack_list = racks()
+    scenes: dict[tuple[int, str], Any] = {}
+    rows: list[dict[str, Any]] = []
+    t_start = time.perf_counter()
+    for i in range(args.views):
+        rng = np.random.default_rng([args.seed, i])
+        ri = i % len(rack_list)
+        name, model = rack_list[ri]
+        T, roll, pitch, yaw = random_view(rng, model)
+        n_full = fully_in_view(T, model)
+        meas_h = T[2, 3] * (1.0 + 0.05 * rng.standard_normal())
+        yaw_std = np.deg2rad(args.yaw_std_deg)
+        prior = AcquisitionPrior(
+            roll_rad=roll + np.deg2rad(1.0) * rng.standard_normal(),
+            pitch_rad=pitch + np.deg2rad(1.0) * rng.standard_normal(),
+            height_m=meas_h, height_std_m=0.05 * meas_h,
+            y_m=T[1, 3] + 0.5 * rng.standard_normal(), y_std_m=1.0,
+            yaw_rad=(yaw + yaw_std * rng.standard_normal()) if yaw_std > 0 else None,
+            yaw_std_rad=yaw_std if yaw_std > 0 else 0.35,
+        )
+        pitch_min = float(np.min(np.diff(model.pipe_arrays().starts[: model.num_parallel, 0]))) if \
+            model.num_parallel > 1 else 1.0
+        for kind in kinds:
+            key = (ri, kind if kind == "default" else f"field-{FIELD_GROUNDS[i % 3]}")
+            if key not in scenes:
+                if kind == "default":
+                    scenes[key] = RackScene(model, seed=100 + ri)
+                else:
+                    assert field_cls is not None
+                    cls, cfg_cls = field_cls
+                    scenes[key] = cls(model, seed=100 + ri, config=cfg_cls(ground=FIELD_GROUNDS[i % 3]))
+            img = scenes[key].render(T, CAMERA, noise_std=NOISE_STD, rng=rng)
+            t0 = time.perf_counter()
+            res = acquire_rack(img, model, CAMERA, prior)
+            dt_ms = (time.perf_counter() - t0) * 1e3
+            row: dict[str, Any] = {"view": i, "rack": name, "appearance": key[1], "n_full": n_full, "ms": dt_ms,
+                                   "confident": res.confident, "n_hyp": len(res.hypotheses),
+                                   "assign_ok": False, "locked": False, "track_ms": None}
+            best = res.best
+            if best is not None:
+                row["score"] = best.score
+                row["assign_ok"] = bool(not best.reversed and abs(best.T_rack_cam[0, 3] - T[0, 3]) < pitch_min / 2)
+                tr = RackTracker(model, CAMERA, RackTrackerConfig())
+                tr.reset(best.T_rack_cam)
+                t1 = time.perf_counter()
+                est = tr.track(img, 0.0)
+                row["track_ms"] = (time.perf_counter() - t1) * 1e3
+                E = se3.inverse(T) @ est.T_rack_cam
+                d = est.T_rack_cam[:3, 3] - T[:3, 3]
+                rot_deg = float(np.rad2deg(np.linalg.norm(so3.log(E[:3, :3]))))
+                row.update(dx_m=float(d[0]), dz_m=float(d[2]), rot_deg=rot_deg, y_err_m=float(d[1]),
+                           y_observed=best.y_observed, y_std_m=float(np.sqrt(max(
+                               float(best.T_rack_cam[1, :3] @ best.covariance[:3, :3] @ best.T_rack_cam[1, :3]),
+                               0.0))))
+                row["locked"] = bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)
+            rows.append(row)
+        if (i + 1) % 20 == 0:
+            print(f"{i + 1}/{args.views} views, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
+    print(json.dumps(summary(rows, args), indent=1))
+
+
+def rates(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    n = len(rows)
+    if n == 0:
+        return {"attempts": 0}
+    conf = [r for r in rows if r["confident"]]
+    correct = sum(1 for r in conf if r["assign_ok"] and r["locked"])
+    wrong = sum(1 for r in conf if not r["assign_ok"])
+    conf_unlocked = sum(1 for r in conf if r["assign_ok"] and not r["locked"])
+    return {
+        "attempts": n,
+        "correct_rate": correct / n,
+        "confident_wrong_rate": wrong / n,
+        "confident_right_but_not_locked_rate": conf_unlocked / n,
+        "no_lock_rate": (n - len(conf)) / n,
+        "best_right_when_not_confident": sum(1 for r in rows if not r["confident"] and r["assign_ok"]),
+    }
+
+
+def summary(rows: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, Any]:
+    ms = np.array([r["ms"] for r in rows])
+    tr = np.array([r["track_ms"] for r in rows if r["track_ms"] is not None])
+    two = [r for r in rows if r["n_full"] >= 2]
+    by_app: dict[str, Any] = {}
+    for app in sorted({r["appearance"].split("-")[0] for r in rows}):
+        sel = [r for r in two if r["appearance"].startswith(app)]
+        by_app[app] = rates(sel)
+    fails = [{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()} for r in two
+             if not (r["confident"] and r["assign_ok"] and r["locked"])][:30]
+    return {
+        "benchmark": "rack_acquire",
+        "views": args.views,
+        "appearance": args.appearance,
+        "seed": args.seed,
+        "yaw_prior_std_deg": args.yaw_std_deg if args.yaw_std_deg > 0 else None,
+        "image": [CAMERA.width, CAMERA.height],
+        "two_or_more_pipes_in_view": rates(two),
+        "two_or_more_by_appearance": by_app,
+        "all_views": rates(rows),
+        "acquire_ms": {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90)),
+                       "max": float(ms.max())},
+        "first_track_ms_median": float(np.median(tr)) if tr.size else None,
+        "targets": {"correct_rate": 0.98, "confident_wrong_rate": 0.002, "acquire_ms_median": 30.0},
+        "confident_wrong_views": [[r["view"], r["appearance"]] for r in rows if r["confident"] and not r["assign_ok"]],
+        "failures_sample": fails,
+        "machine": {"python": platform.python_version(), "opencv": cv2.__version__, "threads": 1,
+                    "cpus": os.cpu_count(), "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
+    }
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,380 @@
+"""Rack acquisition: the camera pose over a pipe-rack from one image, without a start pose.
+
+`acquire_rack(image, model, camera, prior)` finds straight edges (LSD) and the pipes' direction
+(a vote under the autopilot's roll and pitch), then proposes camera positions in the rack's
+cross-section two ways: by sweeping the lateral position against the image's edge profile across
+the pipe lines (`acquire_profile`: every placement of any subset of the pipes, either direction
+of travel, whatever the limbs' shading) and by pairing line segments into pipes by the width the
+model predicts at the measured height (`acquire_match`). The best proposals are refined and
+scored with the tracker's own edge measurement (`acquire_verify`); the along-pipe position y
+comes from a crossing pipe when one is in view and from the prior otherwise. `confident` is true
+only when the best hypothesis is unambiguous: a wrong lock is worse than no lock.
+
+Frames: `rack` (the paper's P, z up, pipes along +y), `cam` (OpenCV optical), `body` (FRD),
+`ned`. `T_rack_cam` is the camera pose in the rack frame. Covariances are those of a right
+perturbation in the camera frame, twist (v, w) in (m, rad), as `RackEstimate.covariance`.
+Pure: no I/O, no clock.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.errors import InputError
+from companion.geometry import se3
+from companion.vision.rack.acquire_lines import (
+    LimbClusters,
+    Segments,
+    detect_segments,
+    direction_candidates,
+    downscale,
+    image_theta_range,
+    limb_clusters,
+    refine_direction,
+    visible_length_px,
+)
+from companion.vision.rack.acquire_match import section_hypotheses
+from companion.vision.rack.acquire_profile import (
+    PencilProfile,
+    pencil_profile,
+    profile_scores,
+    refine_on_peaks,
+    sweep_section,
+)
+from companion.vision.rack.acquire_types import (
+    AcquisitionConfig,
+    AcquisitionPrior,
+    AcquisitionResult,
+    RackHypothesis,
+)
+from companion.vision.rack.acquire_verify import (
+    EdgeCheck,
+    check_pose,
+    crossing_y_candidates,
+    pose_covariance,
+    subset_pipes,
+)
+from companion.vision.rack.model import PipeArrays, RackModel
+
+__all__ = ["AcquisitionConfig", "AcquisitionPrior", "AcquisitionResult", "RackHypothesis", "acquire_rack"]
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A proposed pose with what is needed to score it against the profile of its direction."""
+
+    T_rack_cam: FloatArray
+    sign: int
+    polarity: int  # +1 pipes brighter than around them, -1 darker, 0 unknown
+    prelim: float
+    direction: int  # index into the per-direction tables
+
+
+@dataclass(frozen=True)
+class _Direction:
+    limbs: LimbClusters
+    profile: PencilProfile
+    theta_range: tuple[float, float]
+    grid: FloatArray
+    table: FloatArray
+
+    def visible_length(self, theta: FloatArray) -> FloatArray:
+        return np.asarray(np.interp(theta, self.grid, self.table))
+
+
+def _gray(image: Any, camera: PinholeCamera) -> np.ndarray[Any, np.dtype[np.uint8]]:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        raise InputError(f"image: expected uint8, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] in (1, 3):
+        img = img[:, :, 0] if img.shape[2] == 1 else (img @ np.array([0.114, 0.587, 0.299])).astype(np.uint8)
+    if img.ndim != 2:
+        raise InputError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+    if img.shape != (camera.height, camera.width):
+        raise InputError(f"image: size {img.shape[1]}x{img.shape[0]} does not match the camera "
+                         f"{camera.width}x{camera.height}")
+    return np.ascontiguousarray(img)
+
+
+def _pose_from_section(x_m: float, z_m: float, alpha_rad: float, sign: int, limbs: LimbClusters,
+                       y_m: float) -> FloatArray:
+    """T_rack_cam from a cross-section position: rack axes in the camera frame, camera at (x, y, z)."""
+    ca, sa = np.cos(alpha_rad), np.sin(alpha_rad)
+    ex = ca * limbs.e_x + sa * limbs.e_z
+    ez = -sa * limbs.e_x + ca * limbs.e_z
+    R_cam_rack = np.column_stack([sign * ex, sign * limbs.d, ez])
+    U, _, Vt = np.linalg.svd(R_cam_rack)
+    return se3.make((U @ Vt).T, np.array([x_m, y_m, z_m]))
+
+
+def _explained(di: _Direction, T: FloatArray, sign: int, x_axes: FloatArray, radii: FloatArray,
+               cfg: AcquisitionConfig) -> float:
+    """Share of the direction's profile peaks that the pose's limbs explain."""
+    tol = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
+    # The refined pose's roll about the pipes relative to the profile's basis (see _pose_from_section).
+    u = T[2, :3]
+    alpha = np.array([np.arctan2(-(u @ di.limbs.e_x), u @ di.limbs.e_z)])
+    _, ex = profile_scores(di.profile, np.array([T[0, 3]]), np.array([T[2, 3]]), np.array([float(sign)]), x_axes,
+                           radii, di.theta_range, di.visible_length, tol, cfg.min_limb_px, alpha)
+    return float(ex[0])
+
+
+def acquire_rack(
+    image: Any, model: RackModel, camera: PinholeCamera, prior: AcquisitionPrior,
+    config: AcquisitionConfig | None = None,
+) -> AcquisitionResult:
+    """Camera pose hypotheses over `model` from one `image` ((H, W) uint8 gray or (H, W, 3) BGR)."""
+    if not isinstance(model, RackModel):
+        raise InputError(f"model: expected RackModel, got {type(model).__name__}")
+    if not isinstance(prior, AcquisitionPrior):
+        raise InputError(f"prior: expected AcquisitionPrior, got {type(prior).__name__}")
+    cfg = config or AcquisitionConfig()
+    gray = _gray(image, camera)
+    f_px = float(np.sqrt(camera.fx * camera.fy))
+    small = downscale(gray, cfg.line_scale)
+    seg = detect_segments(gray, small, camera, cfg.line_scale, cfg.min_segment_px, cfg.min_contrast)
+    R0 = prior.R_rack_cam(0.0 if prior.yaw_rad is None else prior.yaw_rad)
+    up_cam = R0[2, :]  # rack +z in the camera frame (independent of yaw for a level rack)
+    pipes_all = model.pipe_arrays()
+    n_par = model.num_parallel
+    par = subset_pipes(pipes_all, np.arange(n_par))
+    x_axes, radii = par.starts[:, 0], par.radii
+    dirs: list[_Direction] = []
+    cands: list[_Candidate] = []
+    num_limbs = 0
+    for d0 in direction_candidates(seg, up_cam, np.deg2rad(1.0), cfg.max_directions, np.deg2rad(15.0)):
+        d, inl = refine_direction(seg, d0, up_cam, cfg.direction_tol_rad)
+        limbs = limb_clusters(seg, inl, d, up_cam, camera, cfg.merge_px / f_px)
+        num_limbs = max(num_limbs, int(limbs.theta.size))
+        signs = _signs(d, R0, prior, cfg)
+        if not signs:
+            continue
+        th_range = image_theta_range(camera, limbs)
+        grid = np.linspace(th_range[0], th_range[1], 181)
+        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px), th_range, grid,
+                        visible_length_px(camera, limbs, grid))
+        k = len(dirs)
+        dirs.append(di)
+        tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
+        for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
+                                cfg.max_swept_hypotheses, cfg.distinct_m):
+            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
+                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
+            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
+        if limbs.theta.size >= 2:
+            for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                        di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
+                                        cfg.max_section_hypotheses, cfg.distinct_m):
+                ev, ex = profile_scores(di.profile, np.array([h.x_m]), np.array([h.z_m]), np.array([float(h.sign)]),
+                                        x_axes, radii, th_range, di.visible_length, tol_bins, cfg.min_limb_px)
+                cands.append(_Candidate(_pose_from_section(h.x_m, h.z_m, h.alpha_rad, h.sign, limbs, prior.y_m),
+                                        h.sign, h.polarity, float(ev[0] * ex[0]), k))
+    if not cands:
+        return AcquisitionResult((), False, "no pipe pattern found", int(seg.length_px.size), num_limbs)
+    cands = _dedupe(sorted(cands, key=lambda c: -c.prelim), cfg.distinct_m)
+    damping = np.array([1.0 / 0.05**2] * 3 + [1.0 / 0.02**2] * 3)
+    # The autopilot's tilt against the edges: edge rows count 1 / (edge_noise² × inflation) each.
+    up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
+    h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
+    checked: list[tuple[float, int, EdgeCheck, int]] = []
+    rivals: list[tuple[float, int, FloatArray]] = []
+    n_all = pipes_all.radii.size
+    y_lo, y_hi = prior.y_m - 4.0 * prior.y_std_m, prior.y_m + 4.0 * prior.y_std_m
+    img_f = gray.astype(np.float32)
+    top = cands[0].prelim
+    to_check = [c for c in cands[: cfg.max_checked] if c.prelim >= cfg.check_score_ratio * top]
+    # The best proposal of the other direction of travel is always checked too: a rack (or the part
+    # in view) that looks the same both ways must come out ambiguous, not as the first one found.
+    for sign in {c.sign for c in cands} - {c.sign for c in to_check}:
+        to_check.append(next(c for c in cands if c.sign == sign))
+    for c in to_check:
+        # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
+        # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
+        chk = check_pose(img_f, camera, par,
+                         c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
+                         cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
+                         prior.height_m, h_weight)
+        if not _credible(chk, cfg, prior, up_cam) and n_all > n_par:
+            # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
+            # the segments along it) and check again with every pipe.
+            ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
+                                       cfg.direction_tol_rad, 0.03, 1)
+            if ys.size:
+                T_y = c.T_rack_cam.copy()
+                T_y[1, 3] = ys[0]
+                pol = np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])
+                chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
+                                 cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
+                                 prior.height_m, h_weight)
+        explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
+        if not _credible(chk, cfg, prior, up_cam):
+            # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
+            rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam))
+            continue
+        checked.append((chk.agree_fraction * explained, c.sign, chk, c.direction))
+    checked.sort(key=lambda sc: -sc[0])
+    # Polish the contenders: the lateral position and the roll about the pipes are nearly
+    # interchangeable from high above, and converge slowly under the per-iteration damping.
+    polished: list[tuple[float, int, EdgeCheck]] = []
+    for score, sign, chk, k in checked:
+        if checked and score >= cfg.ambiguity_ratio * checked[0][0] * 0.9:
+            with_extra = chk.pipe_samples.size > n_par  # checked with the crossing pipe placed
+            pol = np.full(n_par, -float(_polarity_of(chk, n_par)))
+            if with_extra:
+                pol = np.concatenate([pol, np.zeros(n_all - n_par)])
+            chk2 = check_pose(img_f, camera, pipes_all if with_extra else par, chk.T_rack_cam, pol,
+                              cfg.polish_ranges_px, cfg.samples_per_limb,
+                              cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
+                              prior.height_m, h_weight)
+            if _credible(chk2, cfg, prior, up_cam):
+                score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
+                chk = chk2
+        polished.append((score, sign, chk))
+    polished.sort(key=lambda sc: -sc[0])
+    # y from a crossing pipe for the best only: the others are kept as alternatives to report.
+    out = [_finish(sign, chk, score, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping, up_cam, up_weight,
+                   k == 0) for k, (score, sign, chk) in enumerate(polished)]
+    out = _distinct(out, cfg)
+    if not out:
+        return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
+                                 num_limbs)
+    status = ""
+    best = out[0].T_rack_cam
+    tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
+    if out[0].score < cfg.min_score:
+        status = f"best score {out[0].score:.2f} below {cfg.min_score:.2f}: the image is not explained"
+    elif abs(best[2, 3] - prior.height_m) > cfg.confident_sigma * prior.height_std_m \
+            or tilt > cfg.confident_sigma * cfg.attitude_std_rad:
+        # Credible but in the tails of the autopilot's height or tilt: where the lateral / roll
+        # confusion and shadows produce fits that look right. Offered, not trusted.
+        status = "best pose strays from the autopilot's height or tilt"
+    elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
+        status = f"ambiguous: {len(out)} hypotheses score alike"
+    elif any(s > cfg.ambiguity_ratio * out[0].score
+             and ((sign < 0) != out[0].reversed or abs(T[0, 3] - best[0, 3]) >= cfg.distinct_m)
+             for s, sign, T in rivals):
+        status = "ambiguous: a rejected pose fits about as well"
+    return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
+
+
+def _polarity_of(chk: EdgeCheck, n_par: int) -> int:
+    """The pipes' polarity (+1 brighter than around them, -1 darker) the check's limbs agree on, else 0."""
+    s = float(np.sum(chk.limb_polarity[: 2 * n_par]))
+    n = int(np.count_nonzero(chk.limb_polarity[: 2 * n_par]))
+    return 0 if n == 0 or abs(s) < 0.8 * n else (-1 if s > 0 else 1)
+
+
+def _signs(d: FloatArray, R0: FloatArray, prior: AcquisitionPrior, cfg: AcquisitionConfig) -> tuple[int, ...]:
+    """Directions of travel (+1: along rack +y) allowed for pipe direction `d` (cam frame) by the heading."""
+    if prior.yaw_rad is None:
+        return (1, -1)
+    y_cam_prior = R0[1, :]  # rack +y in the camera frame at the prior heading
+    c = float(d @ y_cam_prior) / float(np.linalg.norm(d))
+    ang = float(np.arccos(min(abs(c), 1.0)))  # angle between the lines, modulo the direction
+    gate = cfg.yaw_gate_sigma * prior.yaw_std_rad
+    if ang > gate:
+        return ()
+    return (1 if c >= 0 else -1,) if gate < np.pi / 2 else (1, -1)
+
+
+def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
+    out: list[_Candidate] = []
+    for c in cands:
+        if all(c.sign != o.sign or abs(c.T_rack_cam[0, 3] - o.T_rack_cam[0, 3]) >= sep_m
+               or abs(c.T_rack_cam[2, 3] - o.T_rack_cam[2, 3]) >= 2 * sep_m for o in out):
+            out.append(c)
+    return out
+
+
+def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior, up_cam: FloatArray) -> bool:
+    """Enough limb samples agree on enough pipes, tightly, at a height and tilt the autopilot allows."""
+    if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
+        return False
+    # Sliding sideways and rolling about the pipes look alike from high above: a pose that buys
+    # its fit with a tilt the autopilot contradicts is that confusion, not the rack.
+    tilt = float(np.arccos(np.clip(chk.T_rack_cam[2, :3] @ up_cam, -1.0, 1.0)))
+    if tilt > cfg.tilt_gate_sigma * cfg.attitude_std_rad:
+        return False
+    # A pipe whose two limbs are in view but show (almost) no edge is not where the pose puts it.
+    ls, la = chk.limb_samples, chk.limb_agree
+    shown = (ls[0::2] >= 0.5 * cfg.samples_per_limb) & (ls[1::2] >= 0.5 * cfg.samples_per_limb)
+    missing = shown & (la[0::2] + la[1::2] < cfg.missing_pipe_agree * (ls[0::2] + ls[1::2]))
+    return chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px \
+        and _good_pipes(chk, cfg).size >= cfg.min_pipes and not np.any(missing)
+
+
+def _good_pipes(chk: EdgeCheck, cfg: AcquisitionConfig) -> np.ndarray[Any, np.dtype[np.intp]]:
+    """Pipes both of whose limbs are in view (half a limb's samples or more) and agree (min_pipe_agree,
+    with a run of consecutive agreeing samples of at least min_limb_run of the limb)."""
+    ls, la = chk.limb_samples, chk.limb_agree
+    ok = (ls >= 0.5 * cfg.samples_per_limb) & (la >= cfg.min_pipe_agree * np.maximum(ls, 1.0))
+    ok &= chk.limb_run >= cfg.min_limb_run * ls
+    return np.flatnonzero(ok[0::2] & ok[1::2])
+
+
+def _distinct(hyps: list[RackHypothesis], cfg: AcquisitionConfig) -> list[RackHypothesis]:
+    """Drop hypotheses that are the same pose as a better one (same direction, close pose)."""
+    out: list[RackHypothesis] = []
+    for h in hyps:
+        same = False
+        for b in out:
+            rot = float(np.linalg.norm(se3.log(se3.inverse(b.T_rack_cam) @ h.T_rack_cam)[3:]))
+            d_rack = h.T_rack_cam[:3, 3] - b.T_rack_cam[:3, 3]
+            if h.reversed == b.reversed and float(np.hypot(d_rack[0], d_rack[2])) < cfg.distinct_m \
+                    and rot < cfg.distinct_rad:
+                same = True
+                break
+        if not same:
+            out.append(h)
+    return out
+
+
+def _finish(
+    sign: int, chk: EdgeCheck, score: float, seg: Segments, img_f: Any, camera: PinholeCamera,
+    pipes_all: PipeArrays, n_par: int, prior: AcquisitionPrior, cfg: AcquisitionConfig, damping: FloatArray,
+    up_cam: FloatArray, up_weight: float, find_y: bool,
+) -> RackHypothesis:
+    """Along-pipe y (crossing pipe when `find_y`, else the prior), covariance and the public hypothesis."""
+    T = chk.T_rack_cam.copy()
+    T[1, 3] = prior.y_m
+    final = chk
+    y_observed = False
+    n_all = pipes_all.radii.size
+    if find_y and n_all > n_par:
+        h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
+        span = 4.0 * prior.y_std_m
+        ys = crossing_y_candidates(seg, T, pipes_all, np.arange(n_par, n_all), prior.y_m - span, prior.y_m + span,
+                                   cfg.direction_tol_rad, 0.03, 3)
+        passed: list[tuple[float, EdgeCheck]] = []
+        for y in ys:
+            Ty = T.copy()
+            Ty[1, 3] = y
+            c = check_pose(img_f, camera, pipes_all, Ty, np.zeros(n_all), cfg.check_ranges_px,
+                           cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
+                           up_cam, up_weight, prior.height_m, h_weight)
+            # Both limbs of a crossing pipe must agree: one limb alone fits many positions.
+            ls, la = c.limb_samples[2 * n_par:], c.limb_agree[2 * n_par:]
+            seen = ls >= cfg.samples_per_limb / 2
+            limb_ok = seen & (la >= cfg.min_pipe_agree * ls)
+            if np.count_nonzero(limb_ok) >= 2 and np.all(limb_ok[seen]):
+                passed.append((float(np.min(la[seen] / ls[seen])), c))
+        passed.sort(key=lambda pc: -pc[0])
+        # Two different positions that both fit leave y unobserved.
+        if passed and (len(passed) == 1 or passed[1][0] < cfg.ambiguity_ratio * passed[0][0]):
+            final, y_observed = passed[0][1], True
+    T_out = np.array(final.T_rack_cam if y_observed else T, copy=True)
+    cov = pose_covariance(final, cfg.covariance_inflation, None if y_observed else prior.y_std_m, np.full(6, 1e-6))
+    T_out.flags.writeable = False
+    cov.flags.writeable = False
+    good = _good_pipes(chk, cfg)
+    good = good[good < n_par]
+    ordered = tuple(int(m) for m in (good[::-1] if sign < 0 else good))
+    return RackHypothesis(T_rack_cam=T_out, covariance=cov, score=score, pipes=ordered,
+                          reversed=sign < 0, y_observed=y_observed, residual_px=chk.residual_px,
+                          num_samples=chk.num_samples)

@@ -1,0 +1,233 @@
+"""Rack acquisition, step 2: pair limbs into pipes and match them to the model's pipes.
+
+Works in the cross-section plane of `acquire_lines` (angles `theta` of the limb rays, rad). With
+the camera at (X, Z) in the rack's (x, z) plane, travelling along `sign` * rack +y (sign = +1:
+image left to right is rack +x; sign = -1: the reverse), the axis of parallel pipe m at
+(x_m, r_m) is seen at `phi` = atan2(r_m - Z, sign (x_m - X)) and its limbs at phi -/+ beta,
+beta = asin(r_m / l), l the distance to the axis. A residual roll `alpha` about the pipe
+direction (the autopilot's attitude error) adds to every angle.
+
+Hypotheses come from every pair of observed limbs with opposite polarities (a pipe darker or
+brighter than what lies around it) whose width, read as model pipe m, puts the camera at the
+measured height: that fixes X and Z exactly for each (pair, m, sign), i.e. any subset of the
+pipes in view, either direction of travel. Each hypothesis then predicts every model limb
+(with occlusion and the image's field of view) and is scored by the observed limb length it
+explains against what it predicts plus what it leaves unexplained; the best are refined by
+Gauss-Newton on (X, Z, alpha) with the height and attitude as priors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.vision.rack.acquire_lines import LimbClusters
+
+IntArray = np.ndarray[Any, np.dtype[np.intp]]
+BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
+
+
+@dataclass(frozen=True)
+class SectionHypothesis:
+    """A camera position in the rack cross-section explaining the observed limbs.
+
+    `x_m`, `z_m`: camera centre (rack x, z, m); `alpha_rad`: roll about the pipe direction to add to
+    the attitude; `sign`: +1 travelling along rack +y, -1 along -y; `polarity`: +1 when the pipes
+    are brighter than their surroundings; `score`: explained / (predicted + unexplained) limb
+    length in [0, 1]; `coverage` the fraction of the observed limb length it explains; `pipes`:
+    model pipe indices (0-based) with both limbs matched, in image left-to-right order;
+    `matched_limbs`: number of matched limbs.
+    """
+
+    x_m: float
+    z_m: float
+    alpha_rad: float
+    sign: int
+    polarity: int
+    score: float
+    coverage: float
+    pipes: tuple[int, ...]
+    matched_limbs: int
+
+
+def predict_limb_angles(
+    X: FloatArray, Z: FloatArray, alpha: FloatArray, sign: FloatArray, x_axes: FloatArray, radii: FloatArray
+) -> tuple[FloatArray, BoolArray]:
+    """Observed-frame angles (C, 2M) of the limbs of M pipes for C camera hypotheses and their
+    visibility (C, 2M) against occlusion by nearer pipes. Columns 2m, 2m+1: left, right limb of
+    pipe m (left = smaller angle)."""
+    dx = sign[:, None] * (x_axes[None, :] - X[:, None])  # (C, M)
+    dz = radii[None, :] - Z[:, None]
+    l = np.hypot(dx, dz)
+    phi = np.arctan2(dz, dx)
+    beta = np.arcsin(np.minimum(radii[None, :] / np.maximum(l, 1e-9), 1.0))
+    C, M = dx.shape
+    th = np.empty((C, 2 * M))
+    th[:, 0::2] = phi - beta + alpha[:, None]
+    th[:, 1::2] = phi + beta + alpha[:, None]
+    # A limb is hidden when it lies inside the angular interval of a nearer pipe.
+    lo, hi = th[:, 0::2], th[:, 1::2]  # (C, M)
+    inside = (th[:, :, None] > lo[:, None, :]) & (th[:, :, None] < hi[:, None, :])  # (C, 2M, M)
+    nearer = np.repeat(l, 2, axis=1)[:, :, None] > l[:, None, :]
+    visible = ~np.any(inside & nearer, axis=2) & (l > radii[None, :] * 1.001).repeat(2, axis=1)
+    return th, visible
+
+
+def anchor_hypotheses(
+    limbs: LimbClusters, x_axes: FloatArray, radii: FloatArray, height_m: float, height_tol_m: float,
+    signs: tuple[int, ...],
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray]:
+    """Camera (X, Z), sign and pipe polarity of every (limb pair, model pipe, sign) whose width
+    matches the model pipe's radius at the measured height (|Z - height| <= height_tol).
+
+    Returns X (C,), Z (C,), sign (C,), polarity (C,), anchor pipe (C,).
+    """
+    th, pol = limbs.theta, limbs.polarity
+    i, j = np.triu_indices(th.size, k=1)
+    ok = (pol[i] == -pol[j]) & (th[j] - th[i] > 1e-4)
+    i, j = i[ok], j[ok]
+    phi = 0.5 * (th[i] + th[j])
+    sin_b = np.sin(0.5 * (th[j] - th[i]))
+    # (pairs, M): distance to the axis and camera height for each model pipe.
+    l = radii[None, :] / sin_b[:, None]
+    Zc = radii[None, :] - l * np.sin(phi)[:, None]
+    good = np.abs(Zc - height_m) <= height_tol_m
+    pi, mi = np.nonzero(good)
+    Xs, Zs, Ss, Ps, Ms = [], [], [], [], []
+    for s in signs:
+        Xs.append(x_axes[mi] - s * l[pi, mi] * np.cos(phi[pi]))
+        Zs.append(Zc[pi, mi])
+        Ss.append(np.full(pi.size, float(s)))
+        Ps.append(pol[i[pi]])
+        Ms.append(mi)
+    return (np.concatenate(Xs), np.concatenate(Zs), np.concatenate(Ss), np.concatenate(Ps),
+            np.concatenate(Ms).astype(np.intp))
+
+
+def match_limbs(
+    pred: FloatArray, pred_pol: FloatArray, pred_weight: FloatArray, limbs: LimbClusters, tol_rad: float
+) -> tuple[IntArray, FloatArray]:
+    """Nearest observed limb (same polarity, within tol) of each predicted limb, -1 if none.
+
+    `pred` (C, L) angles, `pred_pol` (C, L) polarities, `pred_weight` (C, L) predicted visible
+    length (0 = not predicted). Returns the matched cluster index (C, L) and |angle error| (C, L).
+    """
+    if limbs.theta.size == 0:
+        return np.full(pred.shape, -1, dtype=np.intp), np.full(pred.shape, np.inf)
+    err = np.abs(pred[:, :, None] - limbs.theta[None, None, :])
+    err = np.where(pred_pol[:, :, None] == limbs.polarity[None, None, :], err, np.inf)
+    k = np.argmin(err, axis=2)
+    e = np.take_along_axis(err, k[:, :, None], axis=2)[:, :, 0]
+    ok = (e <= tol_rad) & (pred_weight > 0)
+    return np.where(ok, k, -1), e
+
+
+def score_hypotheses(
+    X: FloatArray, Z: FloatArray, alpha: FloatArray, sign: FloatArray, polarity: FloatArray,
+    limbs: LimbClusters, x_axes: FloatArray, radii: FloatArray, theta_range: tuple[float, float],
+    visible_length: Any, tol_rad: float, min_length_px: float,
+) -> tuple[FloatArray, IntArray, FloatArray, FloatArray]:
+    """Score (C,) of camera hypotheses, their limb matches (C, 2M), predicted angles (C, 2M) and
+    the fraction (C,) of the observed limb length they explain; `visible_length(theta)` gives a
+    limb's length in view (px). Limbs predicted shorter than `min_length_px` may explain an
+    observation but are not required."""
+    th, vis = predict_limb_angles(X, Z, alpha, sign, x_axes, radii)
+    in_view = (th > theta_range[0]) & (th < theta_range[1])
+    L_any = np.where(vis & in_view, visible_length(th.ravel()).reshape(th.shape), 0.0)
+    L = np.where(L_any >= min_length_px, L_any, 0.0)
+    pol = np.empty_like(th)
+    pol[:, 0::2] = polarity[:, None]
+    pol[:, 1::2] = -polarity[:, None]
+    k, _ = match_limbs(th, pol, L_any, limbs, tol_rad)
+    matched = k >= 0
+    obs_len = np.where(matched, limbs.length_px[np.maximum(k, 0)], 0.0)
+    explained = np.minimum(obs_len, L).sum(axis=1)
+    # Observed limbs no predicted limb claims count against the hypothesis.
+    claimed = np.zeros((X.size, limbs.theta.size), dtype=bool)
+    rows = np.repeat(np.arange(X.size), th.shape[1])
+    claimed[rows[matched.ravel()], k.ravel()[matched.ravel()]] = True
+    unexplained = np.where(claimed, 0.0, limbs.length_px[None, :]).sum(axis=1)
+    score = explained / np.maximum(L.sum(axis=1) + unexplained, 1e-9)
+    coverage = 1.0 - unexplained / max(float(limbs.length_px.sum()), 1e-9)
+    return score, k, th, coverage
+
+
+def refine_section(
+    X: float, Z: float, alpha: float, sign: float, matches: IntArray, limbs: LimbClusters,
+    x_axes: FloatArray, radii: FloatArray, height_m: float, height_std_m: float, alpha_std_rad: float,
+    angle_std_rad: float, iterations: int = 3,
+) -> tuple[float, float, float]:
+    """Gauss-Newton on (X, Z, alpha) over the matched limbs (`matches` (2M,), -1 = none), with the
+    height and a zero roll correction as priors; central-difference Jacobian (3 parameters)."""
+    sel = np.flatnonzero(matches >= 0)
+    if sel.size == 0:
+        return X, Z, alpha
+    obs = limbs.theta[matches[sel]]
+    p = np.array([X, Z, alpha])
+    s = np.array([sign])
+    prior_w = np.array([0.0, 1.0 / height_std_m**2, 1.0 / alpha_std_rad**2])
+    prior_mean = np.array([0.0, height_m, 0.0])
+    h = np.array([1e-5, 1e-5, 1e-6])
+    for _ in range(iterations):
+        # Evaluate the centre and the six +/- steps in one call.
+        P = np.vstack([p, p + np.diag(h), p - np.diag(h)])
+        th, _ = predict_limb_angles(P[:, 0], P[:, 1], P[:, 2], np.repeat(s, 7), x_axes, radii)
+        th = th[:, sel]
+        r = obs - th[0]
+        J = ((th[1:4] - th[4:7]) / (2.0 * h[:, None])).T  # (n, 3)
+        H = J.T @ J / angle_std_rad**2 + np.diag(prior_w)
+        g = J.T @ r / angle_std_rad**2 + prior_w * (prior_mean - p)
+        try:
+            step = np.linalg.solve(H + 1e-9 * np.eye(3), g)
+        except np.linalg.LinAlgError:
+            break
+        p = p + step
+        if np.abs(step[0]) + np.abs(step[1]) < 1e-5:
+            break
+    return float(p[0]), float(p[1]), float(p[2])
+
+
+def section_hypotheses(
+    limbs: LimbClusters, x_axes: FloatArray, radii: FloatArray, height_m: float, height_std_m: float,
+    signs: tuple[int, ...], theta_range: tuple[float, float], visible_length: Any, tol_rad: float,
+    min_length_px: float, alpha_std_rad: float, max_hypotheses: int, merge_m: float,
+) -> list[SectionHypothesis]:
+    """Anchor, score, refine and de-duplicate the cross-section hypotheses (best first)."""
+    tol_h = 3.0 * height_std_m + 0.05
+    X, Z, S, P, _ = anchor_hypotheses(limbs, x_axes, radii, height_m, tol_h, signs)
+    if X.size == 0:
+        return []
+    A0 = np.zeros(X.size)
+    score, _, _, _ = score_hypotheses(X, Z, A0, S, P, limbs, x_axes, radii, theta_range, visible_length,
+                                      tol_rad, min_length_px)
+    order = np.argsort(-score)
+    out: list[SectionHypothesis] = []
+    tried: list[tuple[float, float, float]] = []
+    for c in order:
+        if len(out) >= max_hypotheses or score[c] <= 0.0:
+            break
+        if any(s == S[c] and abs(x - X[c]) < merge_m and abs(z - Z[c]) < 2 * merge_m for x, z, s in tried):
+            continue
+        tried.append((float(X[c]), float(Z[c]), float(S[c])))
+        x, z, a = float(X[c]), float(Z[c]), 0.0
+        for _ in range(2):  # match, refine, re-match
+            _, k, _, _ = score_hypotheses(np.array([x]), np.array([z]), np.array([a]), S[c:c + 1], P[c:c + 1],
+                                          limbs, x_axes, radii, theta_range, visible_length, tol_rad, min_length_px)
+            x, z, a = refine_section(x, z, a, float(S[c]), k[0], limbs, x_axes, radii, height_m, height_std_m,
+                                     alpha_std_rad, 2.5 * tol_rad / 6.0)
+        sc, k, th, cov = score_hypotheses(np.array([x]), np.array([z]), np.array([a]), S[c:c + 1], P[c:c + 1],
+                                        limbs, x_axes, radii, theta_range, visible_length, tol_rad, min_length_px)
+        both = (k[0, 0::2] >= 0) & (k[0, 1::2] >= 0)
+        pipes = np.flatnonzero(both)
+        pipes = pipes[np.argsort(th[0, 2 * pipes])]
+        hyp = SectionHypothesis(x_m=x, z_m=z, alpha_rad=a, sign=int(S[c]), polarity=int(P[c]), score=float(sc[0]),
+                                coverage=float(cov[0]), pipes=tuple(int(m) for m in pipes),
+                                matched_limbs=int(np.count_nonzero(k[0] >= 0)))
+        if any(h.sign == hyp.sign and abs(h.x_m - x) < merge_m and abs(h.z_m - z) < 2 * merge_m for h in out):
+            continue
+        out.append(hyp)
+    out.sort(key=lambda h: -h.score)
+    return out

@@ -1,0 +1,207 @@
+"""Rack acquisition, robust hypotheses: the image's edge profile across the pencil of pipe lines.
+
+Every line parallel to the pipes passes through their vanishing point; in the cross-section
+plane of `acquire_lines` each such image line is one angle `theta`. Averaging, for every angle,
+the image gradient across those lines (its component along the gradient of theta) over the
+pixels of the line gives a 1-D profile in which every straight limb is a peak, however its
+intensity step looks: a sharp silhouette, a limb darkened by shading, a pipe darker or brighter
+than the ground. Camera positions (x, z) along the rack cross-section are then swept: each
+predicts the model's limb angles (with occlusion and the field of view), and is scored by the
+evidence under its limbs times the share of the profile's peaks it explains. Unlike limbs
+grouped from line segments, this needs no polarity and no precise segment ends, and it offers
+every placement of the pattern, so ambiguous placements are never missed. Pixels follow OpenCV;
+angles in radians; lengths in metres.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.acquire_lines import LimbClusters
+from companion.vision.rack.acquire_match import predict_limb_angles, refine_section
+
+GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(camera: PinholeCamera, width: int, height: int) -> FloatArray:
+    """Unit-depth rays (H, W, 3) (cam frame) of the pixel centres of the image resized to width x height."""
+    sx, sy = camera.width / width, camera.height / height
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float64)
+    uv = np.stack([(uu.ravel() + 0.5) * sx - 0.5, (vv.ravel() + 0.5) * sy - 0.5], axis=1)
+    xy = camera.normalized(uv)
+    rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1).reshape(height, width, 3)
+    rays.flags.writeable = False
+    return rays
+
+
+@dataclass(frozen=True)
+class PencilProfile:
+    """Mean cross-line gradient (grey levels per px) `value` (B,) in angle bins starting at
+    `theta0` (rad) of width `bin_rad`; `peak_theta` (P,) / `peak_value` (P,) its local maxima above
+    half the reference level `ref` (the 99th percentile of the profile)."""
+
+    theta0: float
+    bin_rad: float
+    value: FloatArray
+    ref: float
+    peak_theta: FloatArray
+    peak_value: FloatArray
+
+    def at(self, theta: FloatArray, tol_bins: int) -> FloatArray:
+        """Largest profile value within `tol_bins` bins of each angle (0 outside the profile)."""
+        b = np.round((theta - self.theta0) / self.bin_rad).astype(np.intp)
+        v = self.value
+        n = v.size
+        if tol_bins > 0:
+            pad = np.concatenate([np.zeros(tol_bins), v, np.zeros(tol_bins)])
+            stack = np.stack([pad[k : k + n] for k in range(2 * tol_bins + 1)])
+            v = stack.max(axis=0)
+        inside = (b >= 0) & (b < n)
+        return np.where(inside, v[np.clip(b, 0, n - 1)], 0.0)
+
+
+def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float) -> PencilProfile:
+    """The profile of `small` (the image resized, any scale) for the pipe direction and basis of `limbs`."""
+    h, w = small.shape
+    rays = _pixel_rays(camera, w, h)
+    # The angle of a pixel's ray in the cross-section; its component along the pipes does not matter.
+    theta = np.arctan2(rays @ limbs.e_z, rays @ limbs.e_x).astype(np.float32)
+    img = small.astype(np.float32)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) * 0.125
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) * 0.125
+    tx = cv2.Sobel(theta, cv2.CV_32F, 1, 0, ksize=3)
+    ty = cv2.Sobel(theta, cv2.CV_32F, 0, 1, ksize=3)
+    tn = np.sqrt(tx * tx + ty * ty) + np.float32(1e-12)
+    across = np.abs(gx * tx + gy * ty) / tn  # gradient component across the pencil lines
+    theta0 = float(theta.min())
+    b = ((theta - theta0) / bin_rad).astype(np.intp).ravel()
+    n_bins = int(b.max()) + 1
+    cnt = np.bincount(b, minlength=n_bins).astype(np.float64)
+    tot = np.bincount(b, weights=across.ravel().astype(np.float64), minlength=n_bins)
+    # Lines that cross only a corner of the image have few pixels: weak evidence, not a peak.
+    value = np.where(cnt >= 0.25 * min(h, w), tot / np.maximum(cnt, 1.0), 0.0)
+    value = np.asarray(np.convolve(value, np.array([0.25, 0.5, 0.25]), mode="same"))
+    ref = float(np.percentile(value[value > 0], 99)) if np.any(value > 0) else 0.0
+    is_peak = np.zeros(n_bins, dtype=bool)
+    is_peak[1:-1] = (value[1:-1] >= value[:-2]) & (value[1:-1] > value[2:]) & (value[1:-1] >= 0.5 * ref)
+    pk = np.flatnonzero(is_peak)
+    return PencilProfile(theta0=theta0, bin_rad=bin_rad, value=value, ref=max(ref, 1e-9),
+                         peak_theta=np.asarray(theta0 + (pk + 0.5) * bin_rad, dtype=np.float64), peak_value=value[pk])
+
+
+@dataclass(frozen=True)
+class SweptHypothesis:
+    """A camera position from the sweep: `x_m`, `z_m` (rack frame), `sign` (+1 along rack +y),
+    `score` = evidence × explained, `evidence` (mean profile under the predicted limbs, relative
+    to the reference, capped at 1), `explained` (share of the peak mass near predicted limbs)."""
+
+    x_m: float
+    z_m: float
+    sign: int
+    score: float
+    evidence: float
+    explained: float
+
+
+def profile_scores(
+    profile: PencilProfile, X: FloatArray, Z: FloatArray, S: FloatArray, x_axes: FloatArray, radii: FloatArray,
+    theta_range: tuple[float, float], visible_length: Any, tol_bins: int, min_length_px: float,
+    alpha: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Evidence and explained share (C,) of camera positions X, Z (C,) travelling along S (C,) x rack +y,
+    rolled by `alpha` (C,) (rad, default 0) about the pipes relative to the profile's basis.
+
+    Evidence: the profile under the predicted limbs relative to the reference (capped at 1),
+    weighted by their visible length; explained: the share of the profile's peak mass within the
+    tolerance of a predicted limb (peaks nothing predicts count against the position).
+    """
+    th, vis = predict_limb_angles(X, Z, np.zeros(X.size) if alpha is None else alpha, S, x_axes, radii)
+    in_view = vis & (th > theta_range[0]) & (th < theta_range[1])
+    L = np.where(in_view, visible_length(th.ravel()).reshape(th.shape), 0.0)
+    L = np.where(min_length_px <= L, L, 0.0)
+    ev = np.minimum(profile.at(th.ravel(), tol_bins).reshape(th.shape) / profile.ref, 1.0)
+    tot_L = L.sum(axis=1)
+    evidence = np.where(tot_L > 0, (ev * L).sum(axis=1) / np.maximum(tot_L, 1e-9), 0.0)
+    if profile.peak_theta.size == 0:
+        return evidence, np.zeros(X.size)
+    near = np.abs(profile.peak_theta[None, None, :] - th[:, :, None]) <= (tol_bins + 1) * profile.bin_rad
+    claimed = (near & in_view[:, :, None]).any(axis=1)  # (C, P)
+    explained = (claimed * profile.peak_value[None, :]).sum(axis=1) / profile.peak_value.sum()
+    return evidence, explained
+
+
+def sweep_section(
+    profile: PencilProfile, x_axes: FloatArray, radii: FloatArray, height_m: float, height_std_m: float,
+    signs: tuple[int, ...], theta_range: tuple[float, float], visible_length: Any, x_step_m: float,
+    tol_bins: int, min_length_px: float, max_hypotheses: int, separation_m: float,
+) -> list[SweptHypothesis]:
+    """Score camera positions on a grid (x every `x_step_m` over the rack ± the ground footprint,
+    z at the height ± 2 std) and return the best local maxima, at least `separation_m` apart."""
+    slope = max(abs(np.tan(theta_range[0] + np.pi / 2)), abs(np.tan(theta_range[1] + np.pi / 2)))
+    half_view = 1.2 * height_m * min(slope, 3.0)
+    xs = np.arange(x_axes.min() - half_view, x_axes.max() + half_view + x_step_m, x_step_m)
+    zs = height_m + height_std_m * np.array([-2.0, -1.0, 0.0, 1.0, 2.0])
+    X, Z, S = (a.ravel() for a in np.meshgrid(xs, zs, np.asarray(signs, dtype=np.float64), indexing="ij"))
+    evidence, explained = profile_scores(profile, X, Z, S, x_axes, radii, theta_range, visible_length, tol_bins,
+                                         min_length_px)
+    score = evidence * explained
+    # Best z per (x, sign), then local maxima along x.
+    n_x, n_z, n_s = xs.size, zs.size, len(signs)
+    sc = score.reshape(n_x, n_z, n_s)
+    iz = sc.argmax(axis=1)  # (n_x, n_s)
+    best = np.take_along_axis(sc, iz[:, None, :], axis=1)[:, 0, :]
+    out: list[SweptHypothesis] = []
+    for si in range(n_s):
+        col = best[:, si]
+        peak = np.zeros(n_x, dtype=bool)
+        peak[1:-1] = (col[1:-1] >= col[:-2]) & (col[1:-1] > col[2:]) & (col[1:-1] > 0)
+        for ix in np.flatnonzero(peak):
+            flat = (ix * n_z + iz[ix, si]) * n_s + si
+            out.append(SweptHypothesis(x_m=float(xs[ix]), z_m=float(zs[iz[ix, si]]), sign=int(signs[si]),
+                                       score=float(col[ix]), evidence=float(evidence[flat]),
+                                       explained=float(explained[flat])))
+    out.sort(key=lambda h: -h.score)
+    kept: list[SweptHypothesis] = []
+    for h in out:
+        if len(kept) >= max_hypotheses:
+            break
+        if all(h.sign != k.sign or abs(h.x_m - k.x_m) >= separation_m for k in kept):
+            kept.append(h)
+    return kept
+
+
+def refine_on_peaks(
+    profile: PencilProfile, limbs: LimbClusters, h: SweptHypothesis, x_axes: FloatArray, radii: FloatArray,
+    theta_range: tuple[float, float], height_m: float, height_std_m: float, alpha_std_rad: float, tol_rad: float,
+    angle_std_rad: float,
+) -> tuple[float, float, float]:
+    """(x, z, alpha) of a swept position refined by Gauss-Newton on the profile peaks its limbs fall on.
+
+    The sweep's grid is coarse in height (one std); the limb widths, hence the distance, need the
+    peaks' positions, and a start a few centimetres off in height sends the edge check astray.
+    """
+    peaks = profile.peak_theta
+    if peaks.size == 0:
+        return h.x_m, h.z_m, 0.0
+    peak_limbs = LimbClusters(theta=peaks, polarity=np.zeros(peaks.size), length_px=profile.peak_value,
+                              contrast=profile.peak_value, d=limbs.d, e_x=limbs.e_x, e_z=limbs.e_z)
+    x, z, a = h.x_m, h.z_m, 0.0
+    # Coarse to fine: a height a few per cent off moves the outer limbs by more than the final tolerance.
+    for tol in (2.5 * tol_rad, tol_rad):
+        th, vis = predict_limb_angles(np.array([x]), np.array([z]), np.array([a]), np.array([float(h.sign)]),
+                                      x_axes, radii)
+        err = np.abs(th[0][:, None] - peaks[None, :])
+        k = np.argmin(err, axis=1)
+        ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol)
+        matches = np.where(ok, k, -1).astype(np.intp)
+        x, z, a = refine_section(x, z, a, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
+                                 height_std_m, alpha_std_rad, angle_std_rad)
+    return x, z, a

@@ -1,0 +1,300 @@
+"""Rack acquisition, step 3: check and refine a pose hypothesis with the tracker's edge measurement.
+
+The limbs are rendered and sampled by `limbs.sample_limbs` and searched along their normals by
+`edges.search_edges`, exactly as `RackTracker` does; the rows are the tracker's motion fields
+(`motion.pose_jacobian`) solved by `motion.solve_normal_equations` with `motion.robust_weights`.
+A few iterations with a shrinking search range refine the pose; the verdict is the fraction of
+the predicted limb samples whose edge is found (strong, of the hypothesis' polarity) and agrees
+with the refined pose, overall and per pipe. Along-pipe position y: from the limbs of pipes not
+parallel to rack y (a crossing pipe) when the image shows them, found in closed form from the
+line segments and confirmed by the same edge check. Frames: `T_rack_cam` camera in rack frame;
+twists are right perturbations in the camera frame (v, w) like the tracker's covariance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.geometry import se3
+from companion.vision.rack.acquire_lines import Segments
+from companion.vision.rack.edges import search_edges
+from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.model import PipeArrays
+from companion.vision.rack.motion import median_1d, pose_jacobian, robust_weights, solve_normal_equations
+
+Float32Image = np.ndarray[Any, np.dtype[np.float32]]
+
+
+@dataclass(frozen=True)
+class EdgeCheck:
+    """Outcome of `check_pose`: refined `T_rack_cam` (4x4); `num_samples` predicted limb samples;
+    `agree_fraction` of them found and within the inlier distance; `pipe_samples` / `pipe_agree`
+    (M,) the same per pipe, `limb_samples` / `limb_agree` (2M,) per limb (2m, 2m+1: pipe m)
+    and `limb_polarity` (2M,) the polarity used (given or learnt, 0 = open), `limb_run` (2M,)
+    the longest run of consecutive agreeing samples along each limb (a real limb agrees over
+    long stretches; a grating or a texture crossing the predicted line agrees in short bursts);
+    `residual_px` robust std of the agreeing residuals; `H_data` (8x8) the edge information AᵀWA
+    of the last iteration over the pose (6) and the two edge offsets, and `scale2` the weighted
+    residual variance (px²)."""
+
+    T_rack_cam: FloatArray
+    num_samples: int
+    agree_fraction: float
+    pipe_samples: FloatArray
+    pipe_agree: FloatArray
+    limb_samples: FloatArray
+    limb_agree: FloatArray
+    limb_polarity: FloatArray
+    limb_run: FloatArray
+    residual_px: float
+    H_data: FloatArray
+    scale2: float
+
+
+def _longest_runs(limb: Any, agree: Any, n_limbs: int) -> FloatArray:
+    """Longest run of consecutive True in `agree` (N,) within each limb (samples ordered along their limb),
+    gaps of up to two samples (a rust spot on the limb, a missed edge) bridged."""
+    out = np.zeros(n_limbs)
+    if agree.size == 0:
+        return out
+    n = agree.size
+    idx = np.arange(n)
+
+    def shifted(a: Any, k: int) -> Any:
+        j = idx + k
+        ok = (j >= 0) & (j < n)
+        jj = np.clip(j, 0, n - 1)
+        return ok & (limb[jj] == limb) & a[jj]
+
+    # Closing: dilate by one sample, then erode by one (within the limb).
+    dil = agree | shifted(agree, -1) | shifted(agree, 1)
+    ero = dil.copy()
+    for k in (-1, 1):
+        j = idx + k
+        inside = (j >= 0) & (j < n) & (limb[np.clip(j, 0, n - 1)] == limb)
+        ero &= ~inside | dil[np.clip(j, 0, n - 1)]
+    agree = ero
+    # A run breaks where the flag is false or the limb changes; label runs and count their lengths.
+    start = np.ones(agree.size, dtype=bool)
+    start[1:] = (limb[1:] != limb[:-1]) | ~agree[:-1]
+    run_id = np.cumsum(start) - 1
+    lengths = np.bincount(run_id, weights=agree.astype(np.float64))
+    np.maximum.at(out, limb[start], lengths[run_id[start]])
+    return out
+
+
+def subset_pipes(pipes: PipeArrays, index: Any) -> PipeArrays:
+    """The pipes at `index` only (keeps the order)."""
+    return PipeArrays(starts=pipes.starts[index], directions=pipes.directions[index], radii=pipes.radii[index],
+                      lengths=pipes.lengths[index], gap_index=pipes.gap_index[index])
+
+
+def check_pose(
+    image_f32: Float32Image,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    T_rack_cam: FloatArray,
+    pipe_polarity: FloatArray,
+    ranges_px: tuple[int, ...],
+    samples_per_limb: int,
+    edge_threshold: float,
+    inlier_px: float,
+    margin_px: float,
+    damping: FloatArray,
+    up_cam: FloatArray | None = None,
+    up_weight: float = 0.0,
+    height_m: float | None = None,
+    height_weight: float = 0.0,
+) -> EdgeCheck:
+    """Refine `T_rack_cam` on the limbs of `pipes` (one iteration per search range) and score it.
+
+    `pipe_polarity` (M,) is the tracker's polarity of each pipe's limbs (+1: brighter outward, -1:
+    darker outward, 0: unknown, then each limb takes the sign most of its edges show in the first
+    iteration, or stays open when they disagree, e.g. a crossing pipe seen against other pipes);
+    the first iteration's open limbs take the polarity of their edges and count as known; `damping` (6,) the
+    information of a zero-mean prior on each update. As the tracker does, two edge offsets (px
+    along the outward normal, one per limb side) absorb the systematic shift of gradient-peak
+    edges next to shaded limbs; without them the silhouettes read a little wide or narrow and the
+    distance and the lateral position / roll about the pipes (nearly interchangeable from high
+    above) come out biased. `up_cam` (3,), when given, is the autopilot's rack up axis in the
+    camera frame, held with information `up_weight` (px² per rad²) against the rotation;
+    `height_m`, when given, the measured camera height (rack z, m), held with `height_weight`
+    (px² per m²): shadows and ground stripes can mimic a pipe pattern at another height. Edges
+    count when their strength reaches a fifth of the 90th percentile of the strengths on the
+    limbs of known polarity (a tenth on the others: a pipe lying on pipes shows a weak step):
+    texture, noise and shading never reach a fraction of a real silhouette.
+    """
+    T = np.array(T_rack_cam, dtype=np.float64, copy=True)
+    M = pipes.radii.size
+    last: dict[str, Any] = {}
+    # Per-limb polarity: the pipe's where known, else learnt from the first iteration's edges.
+    limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
+    learn = limb_pol == 0.0
+    bias = np.zeros(2)
+    prior8 = np.concatenate([damping, [1.0 / 1.0**2] * 2])
+    for rng_px in ranges_px:
+        s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
+        n = s.uv.shape[0]
+        if n == 0:
+            return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
+                             np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
+        pol = limb_pol[s.limb]
+        meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
+                            tangent_offset_px=1.5)
+        if np.any(learn):
+            # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
+            good = meas.found & learn[s.limb]
+            tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=2 * M)
+            mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=2 * M)
+            decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
+            limb_pol = np.where(decided, np.sign(tot), limb_pol)
+            learn = learn & ~decided
+            if np.any(decided):
+                pol = limb_pol[s.limb]
+                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
+                                    tangent_offset_px=1.5)
+        # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
+        found = meas.found
+        ref = found & (pol != 0.0)
+        if not np.any(ref):
+            ref = found
+        if np.any(ref):
+            frac = np.where(pol != 0.0, 0.2, 0.1)
+            found = found & (meas.strength >= frac * float(np.percentile(meas.strength[ref], 90)))
+        f = np.flatnonzero(found)
+        J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
+        A = np.zeros((f.size, 8))
+        A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
+        side = s.limb[f] % 2
+        A[np.arange(f.size), 6 + side] = 1.0
+        r = meas.offset_px[f] - bias[side]
+        w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
+        A_all, r_all, w_all = A, r, w
+        if up_cam is not None and up_weight > 0:
+            u, J_up = up_axis_with_jacobian(T)
+            A_up = np.zeros((3, 8))
+            A_up[:, :6] = J_up
+            A_all = np.vstack([A, A_up])
+            r_all = np.concatenate([r, up_cam - u])
+            w_all = np.concatenate([w, np.full(3, up_weight)])
+        if height_m is not None and height_weight > 0:
+            # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
+            A_h = np.zeros((1, 8))
+            A_h[0, :3] = T[2, :3]
+            A_all = np.vstack([A_all, A_h])
+            r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
+            w_all = np.concatenate([w_all, [height_weight]])
+        x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
+        T = T @ se3.exp_one(x[:6])
+        bias = bias + x[6:]
+        H_data = (A * w[:, None]).T @ A
+        last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": H_data}
+    s, f = last["s"], last["f"]
+    r_post = last["r"] - last["A"] @ last["x"]
+    agree_rows = np.abs(r_post) <= inlier_px
+    agree = np.zeros(s.uv.shape[0], dtype=bool)
+    agree[f[agree_rows]] = True
+    pipe_samples = np.bincount(s.pipe, minlength=M).astype(np.float64)
+    pipe_agree = np.bincount(s.pipe[agree], minlength=M).astype(np.float64)
+    limb_samples = np.bincount(s.limb, minlength=2 * M).astype(np.float64)
+    limb_agree = np.bincount(s.limb[agree], minlength=2 * M).astype(np.float64)
+    w = last["w"]
+    dof = max(int(np.count_nonzero(w > 0)) - 6, 1)
+    scale2 = float(np.sum(w * r_post**2) / dof)
+    resid = 1.4826 * median_1d(np.abs(r_post[agree_rows])) if np.any(agree_rows) else float("inf")
+    return EdgeCheck(
+        T_rack_cam=T,
+        num_samples=int(s.uv.shape[0]),
+        agree_fraction=float(agree.mean()),
+        pipe_samples=pipe_samples,
+        pipe_agree=pipe_agree,
+        limb_samples=limb_samples,
+        limb_agree=limb_agree,
+        limb_polarity=limb_pol,
+        limb_run=_longest_runs(s.limb, agree, 2 * M),
+        residual_px=float(resid),
+        H_data=last["H"],
+        scale2=scale2,
+    )
+
+
+def up_axis_with_jacobian(T_rack_cam: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The rack's +z axis in the camera frame (3,) and its Jacobian (3, 6) with respect to a right
+    perturbation (v, w) of `T_rack_cam`: u(T exp(δ)) = exp(-w) u ≈ u + u × w, so J = [0, hat(u)]."""
+    u = np.array(T_rack_cam[2, :3], dtype=np.float64)
+    J = np.zeros((3, 6))
+    J[:, 3:] = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+    return u, J
+
+
+def crossing_y_candidates(
+    seg: Segments,
+    T_rack_cam: FloatArray,
+    pipes: PipeArrays,
+    extra_index: Any,
+    y_lo_m: float,
+    y_hi_m: float,
+    angle_tol_rad: float,
+    merge_m: float,
+    max_candidates: int,
+) -> FloatArray:
+    """Camera y positions (rack frame, m) at which a segment would be a limb of an extra pipe.
+
+    A limb plane (unit normal n, rack frame) through the camera centre o = (x, y, z) is tangent to
+    the pipe with axis point c and radius r when n·(c - o) = ±r: linear in y for the fixed x, z
+    and rotation of the hypothesis. Candidates are voted by segment length within `merge_m`
+    (strongest first; at most `max_candidates`, at least `2 merge_m` apart).
+    """
+    if seg.length_px.size == 0:
+        return np.zeros(0)
+    R = T_rack_cam[:3, :3]
+    o = T_rack_cam[:3, 3]
+    n_r = seg.normal_cam @ R.T  # (N, 3) rack frame
+    ys, ws = [], []
+    for k in np.atleast_1d(np.asarray(extra_index)):
+        e, c, r = pipes.directions[k], pipes.starts[k], float(pipes.radii[k])
+        ok = (np.abs(n_r @ e) < np.sin(angle_tol_rad)) & (np.abs(n_r[:, 1]) > 0.2)
+        if not np.any(ok):
+            continue
+        n = n_r[ok]
+        base = n @ c - n[:, 0] * o[0] - n[:, 2] * o[2]
+        for sgn in (-1.0, 1.0):
+            ys.append((base + sgn * r) / n[:, 1])
+            ws.append(seg.length_px[ok])
+    if not ys:
+        return np.zeros(0)
+    y = np.concatenate(ys)
+    w = np.concatenate(ws)
+    keep = (y >= y_lo_m) & (y <= y_hi_m)
+    y, w = y[keep], w[keep]
+    if y.size == 0:
+        return np.zeros(0)
+    votes = (np.abs(y[:, None] - y[None, :]) <= merge_m).astype(np.float64) @ w
+    out: list[float] = []
+    for i in np.argsort(-votes):
+        if len(out) >= max_candidates:
+            break
+        if all(abs(y[i] - v) >= 2.0 * merge_m for v in out):
+            out.append(float(y[i]))
+    return np.asarray(out)
+
+
+def pose_covariance(check: EdgeCheck, inflation: float, y_std_m: float | None, damping: FloatArray) -> FloatArray:
+    """6x6 covariance (right perturbation, cam frame, (v, w), m and rad) of a checked pose.
+
+    Edge information scaled by the residual variance and `inflation` (samples along a limb are
+    correlated), plus the prior on the along-pipe position y (rack frame) with std `y_std_m` when
+    y was not observed, plus `damping` so that directions nothing observes keep a finite variance.
+    """
+    info = check.H_data / max(check.scale2 * inflation, 1e-12)
+    info = info + np.diag(np.concatenate([damping, np.full(info.shape[0] - 6, 1.0)]))
+    if y_std_m is not None:
+        e_y = check.T_rack_cam[1, :3]  # rack y of a camera-frame translation: R[1, :] v
+        info[:3, :3] += np.outer(e_y, e_y) / y_std_m**2
+    cov = np.linalg.inv(info)[:6, :6]  # the edge offsets marginalised out
+    return np.asarray(0.5 * (cov + cov.T))
