@@ -11,7 +11,7 @@ import numpy as np
 
 from companion.sim.report import SimRecord, build_report, plot_trajectory
 
-__all__ = ["collect_frames", "failed_action", "finish_report", "note_autopilot_mode", "rack_outline"]
+__all__ = ["close_record", "collect_frames", "failed_action", "finish_report", "note_autopilot_mode", "rack_outline"]
 
 
 def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any, out_dir: Path, speed: float,
@@ -37,6 +37,24 @@ def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any
         record.notes.append(f"plot failed: {exc}")
         plot_path = None
     return report, report_path, plot_path
+
+
+def close_record(record: SimRecord, daemon: Any, t0: float, now_s: float, timeout_s: float) -> None:
+    """The end of a flight in the record: mission state, why it failed, timeout, safety events (since `t0`)."""
+    from companion.mission import State
+    from companion.sim.report import SafetyEventRecord
+
+    ex = daemon.executor
+    record.mission_state = "not-started" if ex is None else str(ex.state)
+    record.mission_completed = ex is not None and ex.state is State.COMPLETED
+    if ex is not None and ex.state not in (State.COMPLETED, State.FAILED, State.ABORTED):
+        record.notes.append(f"timed out after {timeout_s:.0f} s")
+    record.failed_action = failed_action(ex)
+    record.end_s = now_s
+    for ev in daemon._safety_view.events:
+        record.safety_events.append(SafetyEventRecord(
+            time_s=float(ev["time_s"]) - t0, kind=str(ev["kind"]), action=str(ev["action"]),
+            detail=str(ev["message"])))
 
 
 def note_autopilot_mode(record: SimRecord, elapsed_s: float, mode: str | None, armed: bool) -> None:

@@ -29,8 +29,14 @@ import numpy as np
 
 from companion.clock import Clock, SystemClock
 from companion.errors import CompanionError, InputError
-from companion.sim.flight_record import collect_frames, failed_action, finish_report, note_autopilot_mode
-from companion.sim.report import ActionResult, SafetyEventRecord, SimRecord
+from companion.sim.flight_record import (
+    close_record,
+    collect_frames,
+    failed_action,
+    finish_report,
+    note_autopilot_mode,
+)
+from companion.sim.report import ActionResult, SimRecord
 
 __all__ = ["FAULT_KINDS", "FaultSpec", "SimOptions", "SimResult", "collect_frames", "failed_action", "finish_report",
            "note_autopilot_mode", "parse_fault_spec", "run_sim", "run_sim_cli", "sim_config"]
@@ -265,17 +271,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                     break
             if not options.headless:
                 print("", file=out)
-            ex = daemon.executor
-            record.mission_state = "not-started" if ex is None else str(ex.state)
-            record.mission_completed = ex is not None and ex.state is State.COMPLETED
-            if ex is not None and ex.state not in (State.COMPLETED, State.FAILED, State.ABORTED):
-                record.notes.append(f"timed out after {timeout_s:.0f} s")
-            record.failed_action = failed_action(ex)
-            record.end_s = clock.now()
-            for ev in daemon._safety_view.events:
-                record.safety_events.append(SafetyEventRecord(
-                    time_s=float(ev["time_s"]) - t0, kind=str(ev["kind"]), action=str(ev["action"]),
-                    detail=str(ev["message"])))
+            close_record(record, daemon, t0, clock.now(), timeout_s)
             _collect_results(daemon, record, ap)
             vpe = ap.received_of("VISION_POSITION_ESTIMATE") or ap.received_of("ODOMETRY")  # PX4: ODOMETRY
             collect_frames(frames_seen, render, vpe, boot_s, record, speed,

@@ -24,7 +24,7 @@ import numpy as np
 
 from companion.clock import SystemClock
 from companion.errors import CompanionError, InputError
-from companion.sim.report import SafetyEventRecord, SimRecord
+from companion.sim.report import SimRecord
 
 __all__ = ["SITL_FAULTS", "run_sim_sitl"]
 
@@ -57,16 +57,9 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     from companion.data import data_path
     from companion.mission import State, load_mission
     from companion.sim.ardupilot_sitl import ArduPilotSitl, SitlError, SitlObserver, sitl_binary
+    from companion.sim.flight_record import close_record, finish_report, note_autopilot_mode
     from companion.sim.render import FaultyRender, SceneRenderer
-    from companion.sim.run import (
-        SimResult,
-        _collect_results,
-        _progress_line,
-        failed_action,
-        finish_report,
-        note_autopilot_mode,
-        sim_config,
-    )
+    from companion.sim.run import SimResult, _collect_results, _progress_line, sim_config
     from drivers.camera import load_camera_model
 
     binary = sitl_binary()
@@ -142,17 +135,7 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
                     if ex is None or (ex.state in (State.COMPLETED, State.FAILED, State.ABORTED)
                                       and not observer.armed):
                         break
-                ex = daemon.executor
-                record.mission_state = "not-started" if ex is None else str(ex.state)
-                record.mission_completed = ex is not None and ex.state is State.COMPLETED
-                if ex is not None and ex.state not in (State.COMPLETED, State.FAILED, State.ABORTED):
-                    record.notes.append(f"timed out after {timeout_s:.0f} s")
-                record.failed_action = failed_action(ex)
-                record.end_s = clock.now()
-                for ev in daemon._safety_view.events:
-                    record.safety_events.append(SafetyEventRecord(
-                        time_s=float(ev["time_s"]) - t0, kind=str(ev["kind"]), action=str(ev["action"]),
-                        detail=str(ev["message"])))
+                close_record(record, daemon, t0, clock.now(), timeout_s)
                 _collect_results(daemon, record, truth_view)
                 autopilot_texts = [t for t in observer.statustexts(t0) if not t.startswith(("companion", "SAFETY"))]
             finally:
