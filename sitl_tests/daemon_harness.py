@@ -171,6 +171,16 @@ class Rig:
         await self.daemon.start_mission(mission, mission.name)
 
 
+async def stop_daemon(daemon: Daemon, clock: ManualClock) -> None:
+    """Stop the daemon, advancing the manual clock while it shuts down (hold command, link close)."""
+    stop = asyncio.ensure_future(daemon.stop("test end"))
+    for _ in range(500):
+        if stop.done():
+            break
+        await clock.advance(0.02)
+    await stop
+
+
 def mission(xml_body: str, name: str = "test", frame: str = "rack", timeout_s: float = 40.0) -> Mission:
     """A small mission over the paper rack (rack frame) with `xml_body` as its actions."""
     text = f"""<?xml version="1.0" encoding="UTF-8"?>
@@ -236,10 +246,5 @@ async def rig(
                 await r.advance_until(lambda: daemon.counters.poses_sent >= 10 and ap.ekf_healthy, max_s=10.0)
             yield r
         finally:
-            stop = asyncio.ensure_future(daemon.stop("test end"))
-            for _ in range(500):
-                if stop.done():
-                    break
-                await clock.advance(0.02)
-            await stop
+            await stop_daemon(daemon, clock)
             await camera.__aexit__(None, None, None)

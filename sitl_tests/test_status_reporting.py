@@ -19,7 +19,7 @@ from companion.clock import ManualClock
 from companion.daemon.app import Daemon, DaemonOptions
 from companion.sim.autopilot import FakeAutopilot, FakeAutopilotConfig
 from companion.sim.run import sim_config
-from sitl_tests.daemon_harness import InlineCamera, rig
+from sitl_tests.daemon_harness import InlineCamera, rig, stop_daemon
 
 
 def _notify_socket(tmp_path: Path) -> socket.socket:
@@ -77,12 +77,7 @@ async def test_ready_waits_for_the_autopilot_and_status_lines_say_why(tmp_path: 
                 assert any(m.startswith("STATUS=ardupilot") for m in messages + _drain(sock)) or \
                     daemon.status_line().startswith("ardupilot")
         finally:
-            stop = asyncio.ensure_future(daemon.stop("test end"))
-            for _ in range(500):
-                if stop.done():
-                    break
-                await clock.advance(0.02)
-            await stop
+            await stop_daemon(daemon, clock)
             await camera.__aexit__(None, None, None)
             silent.close()
     finally:
