@@ -390,6 +390,9 @@ class VisionConfig(_Section):
     # a gap between frames longer than this restarts the rack tracker from the IMU-propagated estimate
     frame_gap_reset_s: float = field(default=0.3, metadata=_check(_gt(0)))
     ground_odometer: dict[str, Any] = field(default_factory=dict)  # GroundOdometerConfig kwargs
+    # find the rack in the image when the tracker does not lock from the start pose (a hint, not a survey)
+    # or loses the rack (companion.daemon.acquisition); false: only the start pose and the filter re-seed it
+    rack_acquire: bool = True
 
 
 @dataclass(frozen=True)

@@ -209,6 +209,7 @@ async def rig(
     flight: FlightParams | None = None,
     max_records: int | None = 200_000,
     record_frames: bool | None = None,
+    start_hint: Callable[[Any], Any] | None = None,
 ) -> AsyncIterator[Rig]:
     """Fake autopilot + inline camera + daemon on a ManualClock; waits until poses flow (EKF healthy).
 
@@ -237,7 +238,8 @@ async def rig(
         await camera.__aenter__()
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
             vision_inline=True, camera_source=camera, api=api, sdnotify=False,
-            initial_T_ned_body=ap.truth.T_ned_body, flight_root=tmp_path / "flights", record_frames=record_frames,
+            initial_T_ned_body=ap.truth.T_ned_body if start_hint is None else start_hint(ap.truth.T_ned_body),
+            flight_root=tmp_path / "flights", record_frames=record_frames,
         ))
         await daemon.start()
         r = Rig(clock=clock, ap=ap, daemon=daemon, camera=camera, tmp=tmp_path, config=config)

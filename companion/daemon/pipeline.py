@@ -50,6 +50,7 @@ class FrameInputs:
     roll_rad: float
     pitch_rad: float
     reset_T_ned_body: FloatArray | None = None
+    acquisition: Any | None = None  # `AcquisitionInputs` for an attempt, when the tracker needs one
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,8 @@ class Measurement:
     ground: Any | None
     process_s: float
     rack_reset: bool = False  # the rack tracker was re-initialised (FrameInputs.reset_T_ned_body) on this frame
+    rack_acquired: bool = False  # the rack was acquired from this image and the tracker restarted there
+    acquisition: Any | None = None  # the `AcquisitionResult` of an attempt on this frame
 
     @property
     def rack_ok(self) -> bool:
@@ -90,6 +93,7 @@ class VisionPipeline:
         rack_std_floor: tuple[float, ...] = (0.01, 0.01, 0.01, 0.0087, 0.0087, 0.0087),
         rack_along_pipe_std_m: float = 0.0,
         ground_pipes_in_view_rel_std: float = 1.0,
+        acquire: bool = True,
     ) -> None:
         if source not in SOURCES:
             raise ConfigError(f"vision.source: must be one of {SOURCES}, got {source!r}")
@@ -104,6 +108,7 @@ class VisionPipeline:
         self.ground_pipes_in_view_rel_std = float(ground_pipes_in_view_rel_std)
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
+        self.acquirer: Any | None = None  # `RackAcquirer` when acquisition is on (vision.rack_acquire)
         self._pipe_top_m = 0.0  # mean height of the parallel pipes' tops above the support plane (m)
         self.ground_odometer: Any | None = None
         if source in ("rack", "auto"):
@@ -113,6 +118,10 @@ class VisionPipeline:
             self.rack_tracker = RackTracker(model, camera, rack_config or RackTrackerConfig())
             self._pipe_top_m = 2.0 * float(np.mean(model.radii))
             self.rack_tracker.reset(self.T_rack_cam_from(T0))
+            if acquire:
+                from companion.daemon.acquisition import RackAcquirer
+
+                self.acquirer = RackAcquirer(model, camera, self.T_body_cam, self.T_ned_rack)
         if source in ("ground", "auto"):
             from companion.vision.ground import GroundOdometer, GroundOdometerConfig
 
@@ -144,14 +153,25 @@ class VisionPipeline:
         rack_reset = inputs.reset_T_ned_body is not None and self.rack_tracker is not None
         rack = None
         ground = None
-        if self.rack_tracker is not None:
+        acquired = False
+        acquisition = None
+        acq = self.acquirer
+        if self.rack_tracker is not None and acq is not None and acq.acquiring and inputs.acquisition is not None:
+            T_rack_cam = acq.acquire(image, inputs.acquisition)
+            acquisition = acq.last
+            if T_rack_cam is not None:
+                self.rack_tracker.reset(T_rack_cam)
+                acquired = True
+        if self.rack_tracker is not None and not (acq is not None and acq.acquiring):
             rack = self.rack_tracker.track(image, stamp_s)
+            if acq is not None:
+                acq.after_track(bool(rack.ok))
         if (self.ground_odometer is not None and inputs.height_m is not None
                 and inputs.height_m >= self.min_ground_height_m):
             ground = self.ground_odometer.update(image, stamp_s, inputs.height_m, inputs.roll_rad, inputs.pitch_rad)
         self.frames += 1
         m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0,
-                        rack_reset=rack_reset)
+                        rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition)
         self.rack_ok_frames += int(m.rack_ok)
         self.ground_ok_frames += int(m.ground_ok)
         return m
@@ -186,6 +206,9 @@ class VisionPipeline:
         """
         if measurement.rack_reset:
             self.rack_seed_along_pipe_std_m = self._along_pipe_std(nav_filter)
+        if measurement.rack_acquired and self.acquirer is not None:
+            # acquired without a crossing pipe in view: y is the prior's, as uncertain as it was
+            self.rack_seed_along_pipe_std_m = float(self.acquirer.last_y_std_m)
         if measurement.rack is not None:
             rack = measurement.rack
             if bool(rack.ok):

@@ -114,6 +114,7 @@ class DaemonState:
         self._safety_retry_s = 0.0
         self._turn_key: tuple[int, str] | None = None
         self._turn_pivot: FloatArray | None = None
+        self._last_acq_text_s = float("-inf")  # last 'acquiring the rack' STATUSTEXT (clock s)
         self.mode_owner = ModeOwner()
         self._last_health_line = ""
         self._latency_ms: collections.deque[float] = collections.deque(maxlen=100)

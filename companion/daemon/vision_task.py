@@ -57,7 +57,35 @@ class VisionTask(DaemonState):
                 reset = np.asarray(latest.T_ned_body)
                 self._rack_reset_pending = False
                 self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std)
-        return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset)
+        return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset,
+                           acquisition=self._acquisition_inputs(roll, pitch))
+
+    def _acquisition_inputs(self, roll: float, pitch: float) -> Any | None:
+        """The vehicle's prior for a rack acquisition, when the pipeline is acquiring (else None)."""
+        acq = None if self.pipeline is None else self.pipeline.acquirer
+        if acq is None or not acq.acquiring:
+            return None
+        from companion.daemon.acquisition import AcquisitionInputs
+
+        nf = self.nav_filter
+        hint = self.options.initial_T_ned_body
+        T_hint = np.eye(4) if hint is None else np.asarray(hint, dtype=np.float64)
+        y_std = 1.0
+        if nf is not None:
+            est = nf.estimate_latest()
+            if math.isfinite(float(est.stamp_s)):
+                T_hint = np.asarray(est.T_ned_body, dtype=np.float64)
+                y_std = max(1.0, math.sqrt(float(np.max(np.diag(np.asarray(est.pose_covariance))[:2]))))
+        state = self.link.state if self.link is not None else None
+        # camera height above the rack's support plane: the autopilot's own height (baro / rangefinder EKF)
+        # when it has one, else the estimate's; the support plane is rack z = 0
+        z_body = float(T_hint[2, 3])
+        if state is not None and state.position_ned_m is not None:
+            z_body = float(state.position_ned_m[2])
+        z_cam = z_body + float(self.T_body_cam[2, 3])
+        height = float(self.T_ned_rack[2, 3]) - z_cam
+        return AcquisitionInputs(roll_rad=roll, pitch_rad=pitch, height_above_rack_m=height,
+                                 height_std_m=max(0.05 * abs(height), 0.1), T_ned_body_hint=T_hint, y_std_m=y_std)
 
     async def _vision_loop(self) -> None:
         assert self.pipeline is not None and self.camera is not None
@@ -93,9 +121,30 @@ class VisionTask(DaemonState):
                 continue
             self._after_measure(frame, m)
 
+    def _report_acquisition(self, m: Measurement) -> None:
+        """Acquisition state to the log, and to the GCS (STATUSTEXT on a lock, at most every 5 s otherwise;
+        NAMED_VALUE_FLOAT ACQ_HYP = hypothesis count of each attempt)."""
+        res: Any = m.acquisition
+        n = len(res.hypotheses)
+        if self.link is not None:
+            with contextlib.suppress(Exception):
+                self.link.named_value_float("ACQ_HYP", float(n))
+        now = self.clock.now()
+        if m.rack_acquired:
+            best = res.best
+            self._event("rack-acquired", hypotheses=n, score=round(float(best.score), 3), pipes=list(best.pipes),
+                        y_observed=bool(best.y_observed))
+            self._gcs_text(f"rack acquired ({n} hypotheses, pipes {list(best.pipes)})", "info")
+        elif now - self._last_acq_text_s >= 5.0:
+            self._last_acq_text_s = now
+            self._event("rack-acquiring", hypotheses=n, status=str(res.status))
+            self._gcs_text(f"acquiring the rack: {res.status or 'no confident pose'} ({n} hypotheses)", "info")
+
     def _after_measure(self, frame: Any, m: Measurement) -> None:
         assert self.nav_filter is not None and self.pipeline is not None
         self.counters.frames += 1
+        if m.acquisition is not None:
+            self._report_acquisition(m)
         try:
             nav = self.pipeline.fuse(m, self.nav_filter)
         except CompanionError as exc:

@@ -162,4 +162,5 @@ class Wiring(DaemonState):
             initial_T_ned_body=self.options.initial_T_ned_body,
             rack_std_floor=rack_std_floor_from_config(cfg.vision),
             rack_along_pipe_std_m=self.rack_along_pipe_std_m,
+            acquire=bool(cfg.vision.rack_acquire),
         )

@@ -1,0 +1,107 @@
+"""Rack acquisition in the daemon: find the rack in the image when the tracker is not locked on it.
+
+The start pose the daemon is given (`DaemonOptions.initial_T_ned_body`, the mission's start) is a
+hint, not a survey: the tracker starts from it, and when it does not lock within
+`lock_frames` frames -- or loses the rack later for `lost_frames` frames in a row -- the daemon
+runs `companion.vision.rack.acquire_rack` on each frame until one gives a confident pose, resets the
+tracker there and goes on tracking. The prior comes from the vehicle: roll and pitch from the
+autopilot, the camera's height above the rack's support plane, the along-pipe position and
+heading of the filter's estimate (or the hint) with generous standard deviations. A wrong lock
+is worse than none: only confident results are taken.
+
+Runs in the vision worker, like the trackers (no I/O, no clock).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray
+
+__all__ = ["AcquisitionInputs", "RackAcquirer"]
+
+
+@dataclass(frozen=True)
+class AcquisitionInputs:
+    """The vehicle's side of an acquisition prior, sampled with the frame.
+
+    roll_rad, pitch_rad: autopilot attitude; height_above_rack_m/std: camera above the rack's support
+    plane; T_ned_body_hint: the filter's estimate or the start hint (its rack y and heading are used).
+    """
+
+    roll_rad: float
+    pitch_rad: float
+    height_above_rack_m: float
+    height_std_m: float
+    T_ned_body_hint: FloatArray
+    y_std_m: float = 1.0
+    yaw_std_rad: float = 0.6
+
+
+class RackAcquirer:
+    """Lock state of the rack tracker and the acquisition attempts (see the module docstring)."""
+
+    def __init__(self, model: Any, camera: Any, T_body_cam: FloatArray, T_ned_rack: FloatArray, *,
+                 lock_frames: int = 10, lost_frames: int = 15, config: Any | None = None) -> None:
+        from companion.vision.rack import AcquisitionConfig
+
+        self.model = model
+        self.camera = camera
+        self.T_body_cam = T_body_cam
+        self.T_ned_rack = T_ned_rack
+        self.lock_frames = int(lock_frames)
+        self.lost_frames = int(lost_frames)
+        self.config = config or AcquisitionConfig()
+        self.locked = False  # the tracker has produced a good pose since its last (re)start
+        self.acquiring = False  # the tracker did not lock / lost the rack: acquire on the next frames
+        self.bad_frames = 0
+        self.attempts = 0
+        self.acquisitions = 0
+        self.last: Any | None = None  # the last AcquisitionResult
+        self.last_y_std_m = 0.0  # along-pipe std of the last acquired pose (y not observed: the prior's)
+
+    def after_track(self, ok: bool) -> None:
+        """Update the lock state with the tracker's verdict on this frame."""
+        if ok:
+            self.locked = True
+            self.bad_frames = 0
+            return
+        self.bad_frames += 1
+        limit = self.lost_frames if self.locked else self.lock_frames
+        if self.bad_frames >= limit:
+            self.acquiring = True
+            self.locked = False
+
+    def acquire(self, image: Any, inputs: AcquisitionInputs) -> FloatArray | None:
+        """One attempt on `image`; the acquired T_rack_cam when confident, else None."""
+        from companion.vision.rack import AcquisitionPrior, acquire_rack
+
+        T_rack_body = np.linalg.inv(self.T_ned_rack) @ np.asarray(inputs.T_ned_body_hint, dtype=np.float64)
+        T_rack_cam_hint = T_rack_body @ self.T_body_cam
+        yaw = math.atan2(float(inputs.T_ned_body_hint[1, 0]), float(inputs.T_ned_body_hint[0, 0]))
+        prior = AcquisitionPrior(
+            roll_rad=inputs.roll_rad, pitch_rad=inputs.pitch_rad,
+            height_m=max(inputs.height_above_rack_m, 0.2), height_std_m=max(inputs.height_std_m, 0.05),
+            y_m=float(T_rack_cam_hint[1, 3]), y_std_m=inputs.y_std_m, yaw_rad=yaw, yaw_std_rad=inputs.yaw_std_rad,
+            T_body_cam=self.T_body_cam, T_ned_rack=self.T_ned_rack)
+        self.attempts += 1
+        result = acquire_rack(image, self.model, self.camera, prior, self.config)
+        self.last = result
+        if not result.confident or result.best is None:
+            return None
+        best = result.best
+        self.acquiring = False
+        self.locked = False  # until the tracker confirms it
+        self.bad_frames = 0
+        self.acquisitions += 1
+        self.last_y_std_m = 0.0 if best.y_observed else float(inputs.y_std_m)
+        T_rack_cam = np.asarray(best.T_rack_cam, dtype=np.float64).copy()
+        if not best.y_observed:
+            # nothing in view fixes the position along the pipes: keep the estimate's exactly (the refined
+            # hypothesis can slide along them), so a re-acquisition never steps further than the drift
+            T_rack_cam[1, 3] = T_rack_cam_hint[1, 3]
+        return T_rack_cam
