@@ -144,37 +144,7 @@ def acquire_rack(
     n_par = model.num_parallel
     par = subset_pipes(pipes_all, np.arange(n_par))
     x_axes, radii = par.starts[:, 0], par.radii
-    dirs: list[_Direction] = []
-    cands: list[_Candidate] = []
-    num_limbs = 0
-    for d0 in direction_candidates(seg, up_cam, np.deg2rad(1.0), cfg.max_directions, np.deg2rad(15.0)):
-        d, inl = refine_direction(seg, d0, up_cam, cfg.direction_tol_rad)
-        limbs = limb_clusters(seg, inl, d, up_cam, camera, cfg.merge_px / f_px)
-        num_limbs = max(num_limbs, int(limbs.theta.size))
-        signs = _signs(d, R0, prior, cfg)
-        if not signs:
-            continue
-        th_range = image_theta_range(camera, limbs)
-        grid = np.linspace(th_range[0], th_range[1], 181)
-        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px), th_range, grid,
-                        visible_length_px(camera, limbs, grid))
-        k = len(dirs)
-        dirs.append(di)
-        tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
-        for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
-                                cfg.max_swept_hypotheses, cfg.distinct_m):
-            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
-                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
-            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
-        if limbs.theta.size >= 2:
-            for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                        di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
-                                        cfg.max_section_hypotheses, cfg.distinct_m):
-                ev, ex = profile_scores(di.profile, np.array([h.x_m]), np.array([h.z_m]), np.array([float(h.sign)]),
-                                        x_axes, radii, th_range, di.visible_length, tol_bins, cfg.min_limb_px)
-                cands.append(_Candidate(_pose_from_section(h.x_m, h.z_m, h.alpha_rad, h.sign, limbs, prior.y_m),
-                                        h.sign, h.polarity, float(ev[0] * ex[0]), k))
+    dirs, cands, num_limbs = _propose(seg, small, camera, prior, cfg, up_cam, R0, x_axes, radii, f_px)
     if not cands:
         return AcquisitionResult((), False, "no pipe pattern found", int(seg.length_px.size), num_limbs)
     cands = _dedupe(sorted(cands, key=lambda c: -c.prelim), cfg.distinct_m)
@@ -244,6 +214,53 @@ def acquire_rack(
     if not out:
         return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
                                  num_limbs)
+    status = _decide(out, rivals, prior, cfg, up_cam)
+    return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
+
+
+def _propose(
+    seg: Segments, small: Any, camera: PinholeCamera, prior: AcquisitionPrior, cfg: AcquisitionConfig,
+    up_cam: FloatArray, R0: FloatArray, x_axes: FloatArray, radii: FloatArray, f_px: float,
+) -> tuple[list[_Direction], list[_Candidate], int]:
+    """Pose proposals per pipe direction: the profile sweep's and the limb pairs', with the tables
+    (limbs, profile, field of view) their direction's scoring needs, and the most limbs found."""
+    dirs: list[_Direction] = []
+    cands: list[_Candidate] = []
+    num_limbs = 0
+    for d0 in direction_candidates(seg, up_cam, np.deg2rad(1.0), cfg.max_directions, np.deg2rad(15.0)):
+        d, inl = refine_direction(seg, d0, up_cam, cfg.direction_tol_rad)
+        limbs = limb_clusters(seg, inl, d, up_cam, camera, cfg.merge_px / f_px)
+        num_limbs = max(num_limbs, int(limbs.theta.size))
+        signs = _signs(d, R0, prior, cfg)
+        if not signs:
+            continue
+        th_range = image_theta_range(camera, limbs)
+        grid = np.linspace(th_range[0], th_range[1], 181)
+        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px), th_range, grid,
+                        visible_length_px(camera, limbs, grid))
+        k = len(dirs)
+        dirs.append(di)
+        tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
+        for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
+                                cfg.max_swept_hypotheses, cfg.distinct_m):
+            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
+                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
+            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
+        if limbs.theta.size >= 2:
+            for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                        di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
+                                        cfg.max_section_hypotheses, cfg.distinct_m):
+                ev, ex = profile_scores(di.profile, np.array([h.x_m]), np.array([h.z_m]), np.array([float(h.sign)]),
+                                        x_axes, radii, th_range, di.visible_length, tol_bins, cfg.min_limb_px)
+                cands.append(_Candidate(_pose_from_section(h.x_m, h.z_m, h.alpha_rad, h.sign, limbs, prior.y_m),
+                                        h.sign, h.polarity, float(ev[0] * ex[0]), k))
+    return dirs, cands, num_limbs
+
+
+def _decide(out: list[RackHypothesis], rivals: list[tuple[float, int, FloatArray]], prior: AcquisitionPrior,
+            cfg: AcquisitionConfig, up_cam: FloatArray) -> str:
+    """The empty string when the best of `out` (ranked, distinct) deserves confidence, else why not."""
     status = ""
     best = out[0].T_rack_cam
     tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
@@ -260,7 +277,7 @@ def acquire_rack(
              and ((sign < 0) != out[0].reversed or abs(T[0, 3] - best[0, 3]) >= cfg.distinct_m)
              for s, sign, T in rivals):
         status = "ambiguous: a rejected pose fits about as well"
-    return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
+    return status
 
 
 def _polarity_of(chk: EdgeCheck, n_par: int) -> int:
