@@ -79,8 +79,11 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     camera_model = load_camera_model(config.camera)
     record = SimRecord(mission_name=mission.name, autopilot="ardupilot-sitl", faults=[f.text() for f in options.faults])
     timeout_s = options.max_duration_s or (sum(a.timeout_s for a in mission.actions) + 60.0)
+    # the fake's wind: `wind_m_s` from 60 deg with light turbulence; the Dryden intensity of light turbulence
+    # at low altitude is ~0.1 x the wind speed, so SIM_WIND_TURB (m/s) gets that (1 m/s of turbulence in
+    # a 2 m/s wind is a gale's gustiness, not the fake's)
     wind = {"SIM_WIND_SPD": options.wind_m_s if options.wind else 0.0, "SIM_WIND_DIR": 60.0,
-            "SIM_WIND_TURB": 1.0 if options.wind else 0.0}
+            "SIM_WIND_TURB": 0.1 * options.wind_m_s if options.wind else 0.0}
     print(f"starting the ArduCopter SITL ({binary})", file=out, flush=True)
     with ArduPilotSitl(binary, home=f"{origin[0]},{origin[1]},{origin[2]},0", extra_params=wind) as sitl:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=sitl.url))
