@@ -11,7 +11,8 @@ import numpy as np
 
 from companion.sim.report import SimRecord, build_report, plot_trajectory
 
-__all__ = ["close_record", "collect_frames", "failed_action", "finish_report", "note_autopilot_mode", "rack_outline"]
+__all__ = ["AFTER_END_S", "close_record", "collect_frames", "failed_action", "finish_report", "flight_over",
+           "note_autopilot_mode", "rack_outline"]
 
 
 def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any, out_dir: Path, speed: float,
@@ -37,6 +38,23 @@ def finish_report(record: SimRecord, daemon: Any, config: Any, camera_model: Any
         record.notes.append(f"plot failed: {exc}")
         plot_path = None
     return report, report_path, plot_path
+
+
+AFTER_END_S = 15.0  # how long a run goes on after a mission failed or was aborted with the vehicle in the air
+
+
+def flight_over(ex: Any, armed: bool, now_s: float, ended: dict[str, float]) -> bool:
+    """Whether the simulated flight is over: no mission, completed, or failed/aborted and either disarmed or
+    `AFTER_END_S` later (what the safety manager and the autopilot did next is in the record by then).
+    `ended` keeps the time the mission ended between calls."""
+    from companion.mission import State
+
+    if ex is None or ex.state is State.COMPLETED:
+        return True
+    if ex.state not in (State.FAILED, State.ABORTED):
+        return False
+    ended.setdefault("t", now_s)
+    return not armed or now_s - ended["t"] >= AFTER_END_S
 
 
 def close_record(record: SimRecord, daemon: Any, t0: float, now_s: float, timeout_s: float) -> None:

@@ -34,6 +34,7 @@ from companion.sim.flight_record import (
     collect_frames,
     failed_action,
     finish_report,
+    flight_over,
     note_autopilot_mode,
 )
 from companion.sim.report import ActionResult, SimRecord
@@ -180,7 +181,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
     from companion.config import mission_limits
     from companion.daemon.app import Daemon, DaemonOptions
     from companion.data import data_path
-    from companion.mission import State, load_mission
+    from companion.mission import load_mission
     from companion.sim.autopilot import DrydenConfig, FakeAutopilot, FakeAutopilotConfig, Fault, FlightParams
     from companion.sim.render import FaultyRender, SceneRenderer
     from drivers.camera import load_camera_model
@@ -249,6 +250,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                 except CompanionError as exc:
                     record.notes.append(f"mission refused: {exc}")
             last_print = -1.0
+            ended: dict[str, float] = {}
             while clock.now() - t0 < timeout_s:
                 await clock.sleep(0.05)
                 truth = ap.truth
@@ -265,9 +267,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                         print("\r" + line, end="", file=out, flush=True)
                 note_autopilot_mode(record, elapsed, ap.mode, bool(ap.armed))
                 _collect_results(daemon, record, ap)
-                ex = daemon.executor
-                if ex is None or (ex.state in (State.COMPLETED, State.FAILED, State.ABORTED)
-                                  and (ex.state is State.COMPLETED or not ap.armed)):
+                if flight_over(daemon.executor, bool(ap.armed), clock.now(), ended):
                     break
             if not options.headless:
                 print("", file=out)

@@ -55,9 +55,9 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     from companion.config import mission_limits
     from companion.daemon.app import Daemon, DaemonOptions
     from companion.data import data_path
-    from companion.mission import State, load_mission
+    from companion.mission import load_mission
     from companion.sim.ardupilot_sitl import ArduPilotSitl, SitlError, SitlObserver, sitl_binary
-    from companion.sim.flight_record import close_record, finish_report, note_autopilot_mode
+    from companion.sim.flight_record import close_record, finish_report, flight_over, note_autopilot_mode
     from companion.sim.render import FaultyRender, SceneRenderer
     from companion.sim.run import SimResult, _collect_results, _progress_line, sim_config
     from drivers.camera import load_camera_model
@@ -111,6 +111,7 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
                 except CompanionError as exc:
                     record.notes.append(f"mission refused: {exc}")
                 last_print = -math.inf
+                ended: dict[str, float] = {}
                 truth_view = SimpleNamespace(truth=SimpleNamespace(position_ned_m=np.zeros(3)))
                 while clock.now() - t0 < timeout_s:
                     await asyncio.sleep(0.05)
@@ -134,9 +135,7 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
                         print(_progress_line(clock.now() - t0, daemon, truth), file=out, flush=True)
                     note_autopilot_mode(record, clock.now() - t0, observer.mode, observer.armed)
                     _collect_results(daemon, record, truth_view)
-                    ex = daemon.executor
-                    if ex is None or (ex.state in (State.COMPLETED, State.FAILED, State.ABORTED)
-                                      and not observer.armed):
+                    if flight_over(daemon.executor, observer.armed, clock.now(), ended):
                         break
                 close_record(record, daemon, t0, clock.now(), timeout_s)
                 _collect_results(daemon, record, truth_view)
