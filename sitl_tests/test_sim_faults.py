@@ -29,6 +29,7 @@ def test_outcome_line_names_the_reason_the_safety_actions_and_the_autopilot_mode
         SafetyEventRecord(41.4, "vision-lost", "none", "no fresh pose for 500 ms"),
         SafetyEventRecord(41.4, "action", "hover", "safety action none -> hover (vision lost)"),
         SafetyEventRecord(51.4, "action", "land", "safety action hover -> land (vision lost too long)"),
+        SafetyEventRecord(52.0, "ceiling-clearance", "land", "ceiling clearance 0.69 m below 1.0 m: climb clamped"),
     ]
     rec.autopilot_modes = [(0.0, "GUIDED", True), (41.5, "BRAKE", True), (51.5, "LAND", True),
                            (58.0, "LAND", False)]
@@ -36,6 +37,7 @@ def test_outcome_line_names_the_reason_the_safety_actions_and_the_autopilot_mode
     assert line.startswith("NOT completed (aborted): action 9 servo 'p3-start' aborted: safety: land")
     assert "hover at 41.4 s (vision lost)" in line and "land at 51.4 s (vision lost too long)" in line
     assert "stop-commands" not in line  # before the mission start
+    assert "ceiling-clearance clamp from 52.0 s" in line
     assert "BRAKE at 41.5 s" in line and "LAND at 51.5 s" in line and "disarmed at 58.0 s" in line
     assert "\n" not in line
 

@@ -207,6 +207,11 @@ def outcome_line(record: SimRecord) -> str:
         head = f"NOT completed ({record.mission_state}): {why}"
     actions = [f"{e.action} at {e.time_s:.1f} s ({e.detail.split('(')[-1].rstrip(')')})"
                for e in record.safety_events if e.kind == "action" and e.time_s >= 0.0]
+    limits: dict[str, float] = {}  # first clamp of each limit (ceiling, clearance, geofence): not an action
+    for e in record.safety_events:
+        if e.kind in ("ceiling", "ceiling-clearance", "geofence") and e.time_s >= 0.0:
+            limits.setdefault(e.kind, e.time_s)
+    actions += [f"{kind} clamp from {t:.1f} s" for kind, t in limits.items()]
     modes = []
     for k, (t, mode, armed) in enumerate(record.autopilot_modes):
         if k and not armed and record.autopilot_modes[k - 1][2]:
