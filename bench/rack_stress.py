@@ -338,7 +338,7 @@ def main() -> None:
     ap.add_argument("--seeds", choices=("tuning", "heldback", "all"), default="tuning")
     ap.add_argument("--quick", action="store_true", help="smoke: first seed of the half, first 100 frames")
     ap.add_argument("--cells", default="", help="comma-separated subset of the cells")
-    ap.add_argument("--rows", default="vision,edge_only")
+    ap.add_argument("--rows", default="vision,edge_only,prior")
     ap.add_argument("--set", action="append", default=[], help="RackTrackerConfig override, name=value")
     ap.add_argument("--cache-dir", default=os.environ.get("RACK_STRESS_CACHE", "/tmp/rack_stress_cache"))
     ap.add_argument("--no-cache", action="store_true")

@@ -28,6 +28,7 @@ from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
     gap_jacobian,
+    gravity_rows,
     information_condition,
     median_1d,
     pose_jacobian,
@@ -216,6 +217,10 @@ class RackTracker:
         self._pipes_cached: PipeArrays | None = None
         self._weights_cache: dict[bool, tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
+        # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
+        # converts an attitude prior's standard deviation into the solver's information scale.
+        self._scale2 = 0.5
+        self._gravity: tuple[FloatArray, float] | None = None
 
     # ------------------------------------------------------------------ public API
     def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
@@ -229,6 +234,7 @@ class RackTracker:
         else:
             self._gaps = self.model.cumulative_gaps.copy()
         self._edge_bias = np.zeros(2)
+        self._scale2 = 0.5
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
         self._texture = TextureMap.empty(self._ref_patch_size())
@@ -245,11 +251,20 @@ class RackTracker:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         return self._T.copy()
 
-    def track(self, image: Any, stamp_s: float) -> RackEstimate:
-        """Track one frame: `image` (H, W) uint8 gray or (H, W, 3) uint8 BGR, `stamp_s` capture time (s)."""
+    def track(
+        self, image: Any, stamp_s: float, R_prior: Any = None, R_prior_std_rad: float | None = None
+    ) -> RackEstimate:
+        """Track one frame: `image` (H, W) uint8 gray or (H, W, 3) uint8 BGR, `stamp_s` capture time (s).
+
+        Optional attitude prior: `R_prior` (3x3) an estimate of R_rack_cam (e.g. the autopilot's
+        attitude brought into the rack frame) and `R_prior_std_rad` its tilt error (rad, 1 sigma).
+        Only its gravity direction is used (two tilt angles, not the heading); without it the
+        tracker is vision only.
+        """
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         gray = self._as_gray(image)
+        self._gravity = self._check_prior(R_prior, R_prior_std_rad)
         cfg = self.config
         cam = self.camera
         img_raw = gray.astype(np.float32)
@@ -337,7 +352,8 @@ class RackTracker:
         # ---- covariance from the final normal matrix and residual scale
         wpos = w > 0
         dof = max(int(wpos.sum()) - x.size, 1)
-        scale2 = float(np.sum(w * r_post**2) / dof)
+        n_rows = r_post.size - (3 if self._gravity is not None else 0)
+        scale2 = float(np.sum(w[:n_rows] * r_post[:n_rows] ** 2) / dof)
         try:
             cov_full = np.linalg.inv(last["H"]) * scale2 * cfg.covariance_inflation
         except np.linalg.LinAlgError:
@@ -355,6 +371,7 @@ class RackTracker:
             self._T = T
             self._gaps = gaps
             self._edge_bias = last["bias"]
+            self._scale2 = scale2
             self._initialized = True
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
@@ -385,6 +402,21 @@ class RackTracker:
         )
 
     # ------------------------------------------------------------------ internals
+    def _check_prior(self, R_prior: Any, std_rad: float | None) -> tuple[FloatArray, float] | None:
+        """The attitude prior as (R (3, 3), row weight), or None; raises InputError naming the bad argument."""
+        if R_prior is None and std_rad is None:
+            return None
+        if R_prior is None or std_rad is None:
+            raise InputError("R_prior: give both R_prior and R_prior_std_rad, or neither")
+        R = np.asarray(R_prior, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
+                or np.linalg.det(R) < 0:
+            raise InputError(f"R_prior: expected a 3x3 rotation matrix, got shape {R.shape}")
+        std = float(std_rad)
+        if not np.isfinite(std) or std <= 0.0:
+            raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
+        return R, self._scale2 * self.config.covariance_inflation / std**2
+
     def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
         """`model.pipe_arrays(gaps)`, cached for the last gaps (read-only arrays, shared)."""
         key = np.asarray(gaps, dtype=np.float64).tobytes()
@@ -481,6 +513,15 @@ class RackTracker:
                 gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
             w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
             w[r_e.size :] *= cfg.texture_weight
+            if self._gravity is not None:
+                # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
+                # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
+                r_g, A_g6 = gravity_rows(T[:3, :3], self._gravity[0])
+                A_g = np.zeros((3, n_par))
+                A_g[:, :6] = A_g6
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
+                w = np.concatenate([w, np.full(3, self._gravity[1])])
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
             T = T @ se3.exp_one(x[:6])
