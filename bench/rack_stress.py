@@ -342,6 +342,8 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="RackTrackerConfig override, name=value")
     ap.add_argument("--cache-dir", default=os.environ.get("RACK_STRESS_CACHE", "/tmp/rack_stress_cache"))
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--render-only", action="store_true",
+                    help="only fill the frame cache (no tracker is run, no result is printed but the counts)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     t_start = time.perf_counter()
@@ -362,6 +364,9 @@ def main() -> None:
         per_row: dict[str, list[dict[str, Any]]] = {r: [] for r in rows}
         for seed in seeds:
             run = load_run(name, cell, seed, cache)
+            if args.render_only:
+                print(f"{name} seed {seed}: {len(run['frames'])} frames cached", file=sys.stderr, flush=True)
+                continue
             for r in rows:
                 res = track_run(name, cell, seed, run, r, overrides, n_frames)
                 per_row[r].append(res)
@@ -369,6 +374,10 @@ def main() -> None:
                       f"{np.sqrt(np.mean(np.square(res['aerr']))):.3f} deg, lost {res['lost']}, "
                       f"{len(res['perr'])} frames", file=sys.stderr, flush=True)
         out_cells[name] = {"spec": cell, "seeds": list(seeds), "rows": {r: summarize(v) for r, v in per_row.items()}}
+    if args.render_only:
+        print(json.dumps({"benchmark": "rack_stress", "render_only": True, "seeds": args.seeds, "cells": wanted,
+                          "elapsed_s": time.perf_counter() - t_start}))
+        return
     summary = {r: row_summary(out_cells, r) for r in rows}
     out = {
         "benchmark": "rack_stress", "seeds": args.seeds, "seed_values": list(seeds), "quick": args.quick,

@@ -50,7 +50,11 @@ class RackTrackerConfig:
     at `init_search_range_m` at the limbs' median depth (at most `init_search_range_px`) and
     shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
     image blurred in proportion); `edge_threshold`
-    the minimum |I(k+1) - I(k-1)| (grey levels); `blur_sigma_px` an optional Gaussian pre-blur;
+    the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
+    learned inner edge profile that candidates are matched against (`search_edges`, 0 = off),
+    `edge_profile_rate` its per-frame learning rate; `edge_tangent_px` > 0 averages each
+    profile with two parallel ones that far along the limb (texture next to a straight limb
+    averages out); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
     Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
@@ -71,7 +75,8 @@ class RackTrackerConfig:
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
     a point's 3-D position is averaged over (1 = keep the position from the first sighting),
-    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points);
+    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
+    `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
     `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
     patch (from the image it was found in), warped into the current view through the pipe's
     tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
@@ -90,6 +95,9 @@ class RackTrackerConfig:
     init_iterations: int = 16
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
+    edge_profile_px: int = 0
+    edge_profile_rate: float = 0.1
+    edge_tangent_px: float = 0.0
     blur_sigma_px: float = 0.0
     polarity_rate: float = 0.1
     margin_px: float = 6.0
@@ -122,6 +130,7 @@ class RackTrackerConfig:
     texture_refine_obs: int = 20
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
+    texture_min_corner_ratio: float = 0.0
     texture_templates: bool = True
     template_half_px: int = 5
     template_iterations: int = 2
@@ -206,6 +215,8 @@ class RackTracker:
         self._edge_bias = np.zeros(2)
         self._polarity = np.zeros(n_limbs)
         self._polarity_known = np.zeros(n_limbs, dtype=bool)
+        # Learned inner edge profile of each limb (zero rows: none yet); see `search_edges`.
+        self._profiles = np.zeros((n_limbs, self.config.edge_profile_px))
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
         self._velocity = np.zeros(6)
@@ -237,6 +248,7 @@ class RackTracker:
         self._scale2 = 0.5
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
+        self._profiles[:] = 0.0
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray = None
         self._velocity = np.zeros(6)
@@ -374,6 +386,7 @@ class RackTracker:
             self._scale2 = scale2
             self._initialized = True
             self._update_polarity(last["samples"], last["meas"].sign, agree)
+            self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
         else:
             self._T = T_pred
@@ -499,7 +512,9 @@ class RackTracker:
                 sigma = max(cfg.blur_sigma_px, rng_px / 16.0)
                 img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
                 thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
-            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr)
+            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
+                                tangent_offset_px=cfg.edge_tangent_px,
+                                inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
             A_e, r_e, f = self._edge_rows(samples, meas.offset_px, meas.found, T, gaps, n_par)
             if cfg.estimate_edge_bias:
                 side = samples.limb[f] % 2
@@ -619,6 +634,25 @@ class RackTracker:
         self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
         self._polarity_known |= seen
 
+    def _update_profiles(self, samples: LimbSamples, inner: FloatArray, good: Any) -> None:
+        """Running mean of each limb's normalised inner profile over its agreeing samples."""
+        g = np.asarray(good, dtype=bool)
+        if self.config.edge_profile_px <= 0 or inner.shape[1] != self._profiles.shape[1] or not np.any(g):
+            return
+        limbs = samples.limb[g]
+        n_l = self._profiles.shape[0]
+        cnt = np.bincount(limbs, minlength=n_l)
+        acc = np.zeros_like(self._profiles)
+        np.add.at(acc, limbs, inner[g])
+        seen = cnt >= 3
+        mean = acc[seen] / cnt[seen, None]
+        norm = np.linalg.norm(mean, axis=1, keepdims=True)
+        mean = mean / np.maximum(norm, 1e-9)  # unit norm: the reference; a weak norm = inconsistent shapes
+        fresh = seen & ~np.any(self._profiles != 0.0, axis=1)
+        rate = np.where(fresh[seen], 1.0, self.config.edge_profile_rate)[:, None]
+        upd = (1.0 - rate) * self._profiles[seen] + rate * mean * np.minimum(norm, 1.0)
+        self._profiles[seen] = upd
+
     def _ref_patch_size(self) -> int:
         """Side of the stored reference patches: room for the window scaled by up to ~1.6."""
         half = int(np.ceil(1.6 * (self.config.template_half_px + 1))) + 1
@@ -694,7 +728,7 @@ class RackTracker:
                 polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
         new_pipe, new_off, new_uv = detect_points(
             gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
-            cfg.texture_min_incidence_cos,
+            cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
         )
         if new_pipe.size:
             tm.add(new_pipe, new_off, new_uv, sample_patches(img_f, new_uv, half_ref), T)
