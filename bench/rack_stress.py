@@ -321,6 +321,39 @@ def acceptance(cells: dict[str, dict[str, Any]], summary: dict[str, Any]) -> dic
     return out
 
 
+# The tracker as it was before issue #14 (these options did not exist or had these values).
+OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tangent_px": 0.0,
+               "max_residual_px": 2.0, "init_search_range_m": 0.25, "texture_weight": 20.0}
+
+
+def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:
+    """Frames/s inside track() on the paper's 5 pipes + crossing pipe (first 150 frames of a cached
+    tour run), one thread, median of 3 runs, for this tracker and the old one on the same frames."""
+    name = "p5x_f50_concrete_fast_distort_beam_gain"
+    cell = dict(CELLS[name], distort=False, traj="tour", overhead=(), gain=False)  # plain 720x480 pinhole
+    run = load_run("throughput_p5x_tour", cell, 0, cache)
+    frames = [decode_frame(b) for b in run["frames"][:150]]
+    model = build_rack(cell["rack"])
+    out: dict[str, Any] = {"scene": "paper_5pipe.toml (5 parallel + crossing pipe), field appearance, 720x480",
+                           "frames": len(frames)}
+    for label, kw in (("new", dict(overrides)), ("old", dict(OLD_TRACKER))):
+        fps = []
+        for _rep in range(3):
+            tr = RackTracker(model, CAMERA, RackTrackerConfig(**kw))
+            tr.reset(run["poses"][0])
+            t_s = 0.0
+            for k, img in enumerate(frames):
+                t0 = time.perf_counter()
+                tr.track(img, k / RATE_HZ)
+                if k:
+                    t_s += time.perf_counter() - t0
+            fps.append((len(frames) - 1) / t_s)
+        out[f"{label}_frames_per_s_runs"] = fps
+        out[f"{label}_frames_per_s_median"] = float(np.median(fps))
+    out["ratio_new_to_old"] = out["new_frames_per_s_median"] / out["old_frames_per_s_median"]
+    return out
+
+
 def _parse_set(items: list[str]) -> dict[str, Any]:
     fields = {f.name: f for f in dataclasses.fields(RackTrackerConfig)}
     out: dict[str, Any] = {}
@@ -342,6 +375,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], help="RackTrackerConfig override, name=value")
     ap.add_argument("--cache-dir", default=os.environ.get("RACK_STRESS_CACHE", "/tmp/rack_stress_cache"))
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--throughput", action="store_true", help="only the throughput check (see throughput())")
     ap.add_argument("--render-only", action="store_true",
                     help="only fill the frame cache (no tracker is run, no result is printed but the counts)")
     args = ap.parse_args()
@@ -358,6 +392,10 @@ def main() -> None:
     rows = [r.strip() for r in args.rows.split(",") if r.strip()]
     overrides = _parse_set(args.set)
     cache = None if args.no_cache else Path(args.cache_dir)
+    if args.throughput:
+        print(json.dumps({"benchmark": "rack_stress", "throughput": throughput(overrides, cache),
+                          "elapsed_s": time.perf_counter() - t_start}))
+        return
     out_cells: dict[str, dict[str, Any]] = {}
     for name in wanted:
         cell = CELLS[name]

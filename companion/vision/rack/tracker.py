@@ -24,6 +24,7 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
 from companion.vision.rack.edges import search_edges
+from companion.vision.rack.ground import detect_ground_points, ground_rows, plane_points
 from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
@@ -52,7 +53,11 @@ class RackTrackerConfig:
     image blurred in proportion); `edge_threshold`
     the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
     learned inner edge profile that candidates are matched against (`search_edges`, 0 = off),
-    `edge_profile_rate` its per-frame learning rate; `edge_tangent_px` > 0 averages each
+    `edge_profile_rate` its per-frame learning rate; `ground_points` the number of ground corners
+    tracked frame to frame as a second reference (plane z = z_g, height estimated online; see
+    `ground.py`; 0 = off), `ground_weight` their rows' weight relative to edge rows,
+    `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
+    random walk allowed to z_g; `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
     averages out); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
@@ -96,6 +101,10 @@ class RackTrackerConfig:
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
     edge_profile_px: int = 0
+    ground_points: int = 0
+    ground_weight: float = 1.0
+    ground_min_corner_ratio: float = 0.0
+    ground_height_walk_m: float = 0.002
     edge_profile_rate: float = 0.1
     edge_tangent_px: float = 0.0
     blur_sigma_px: float = 0.0
@@ -226,12 +235,13 @@ class RackTracker:
         self._since_detect = 0
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
-        self._weights_cache: dict[bool, tuple[FloatArray, FloatArray]] = {}
+        self._weights_cache: dict[tuple[bool, int], tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
         # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
         # converts an attitude prior's standard deviation into the solver's information scale.
         self._scale2 = 0.5
         self._gravity: tuple[FloatArray, float] | None = None
+        self._reset_ground()
 
     # ------------------------------------------------------------------ public API
     def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
@@ -246,6 +256,7 @@ class RackTracker:
             self._gaps = self.model.cumulative_gaps.copy()
         self._edge_bias = np.zeros(2)
         self._scale2 = 0.5
+        self._reset_ground()
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
         self._profiles[:] = 0.0
@@ -314,6 +325,7 @@ class RackTracker:
             if self._stale_ref.size == tex_ok.size:
                 self._stale_ref = self._stale_ref[tex_ok]
             tex_uv = tex_uv[tex_ok]
+        ground = self._track_ground(gray, T)
         # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
         if first:
             n_p = self.model.num_parallel
@@ -322,14 +334,14 @@ class RackTracker:
                 pol_h = np.zeros(self._polarity.size)
                 pol_h[0 : 2 * n_p : 2] = hyp[0]
                 pol_h[1 : 2 * n_p : 2] = hyp[1]
-                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h)
+                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h, None)
                 if best is None or res["n_agree"] > best["n_agree"]:
                     best = res
             assert best is not None
             last = best
         else:
             pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
-            last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t)
+            last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
         T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
         # ---- health
         x = last["x"]
@@ -388,9 +400,11 @@ class RackTracker:
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
+            self._update_ground(gray, T, last, cov_full)
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
+            self._ground_uv = np.zeros((0, 2))
             if len(self._texture):
                 self._texture.uv_last = tex_uv
             cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)
@@ -442,27 +456,27 @@ class RackTracker:
 
     def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
         """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
-        cached = self._weights_cache.get(first)
+        key = (first, n_par)
+        cached = self._weights_cache.get(key)
         if cached is not None:
             return cached
         cfg = self.config
-        prior = np.empty(n_par)
+        prior = np.ones(n_par)
         prior[:3] = 1.0 / cfg.prior_translation_m**2
         prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
         prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
-        prior[i_bias:] = 1.0
         anchor_info = np.zeros(n_par)
         if first:
             anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
             anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / 0.3**2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / 0.3**2
         else:
             anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
             anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / cfg.edge_bias_rate_px**2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / cfg.edge_bias_rate_px**2
         prior.flags.writeable = False
         anchor_info.flags.writeable = False
-        self._weights_cache[first] = (prior, anchor_info)
+        self._weights_cache[key] = (prior, anchor_info)
         return prior, anchor_info
 
     def _solve(
@@ -474,15 +488,27 @@ class RackTracker:
         tex_uv: FloatArray,
         first: bool,
         polarity: FloatArray,
+        ground: tuple[FloatArray, FloatArray, FloatArray] | None,
     ) -> dict[str, Any]:
-        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state."""
+        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state.
+
+        `ground`: (ray origin (3,), ray directions (K, 3), current pixels (K, 2)) of the ground
+        points (rack frame), or None; with them the ground height z_g is the last parameter.
+        """
         cfg = self.config
         cam = self.camera
         n_iter = cfg.init_iterations if first else cfg.max_iterations
         n_gap = self._n_gaps if cfg.estimate_gaps else 0
         i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
         n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
+        has_ground = ground is not None and ground[1].shape[0] > 0 and self._z_g is not None
+        i_z = n_par
+        n_par += 1 if has_ground else 0
         prior, anchor_info = self._solver_weights(first, n_par, i_bias)
+        if has_ground:
+            prior, anchor_info = prior.copy(), anchor_info.copy()
+            prior[i_z] = 1.0
+            anchor_info[i_z] = 1.0 / self._z_g_var
         pipes = self._pipe_arrays(gaps)
         # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
         tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
@@ -526,8 +552,19 @@ class RackTracker:
             gate = None
             if it > 0:
                 gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
+            n_et = r.size
+            if has_ground:
+                assert ground is not None and self._z_g is not None
+                X, dXdz = plane_points(ground[0], ground[1], self._z_g + moved[i_z])
+                A_g7, r_g = ground_rows(T, cam, X, dXdz, ground[2])
+                A_g = np.zeros((r_g.size, n_par))
+                A_g[:, :6] = A_g7[:, :6]
+                A_g[:, i_z] = A_g7[:, 6]
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
             w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
-            w[r_e.size :] *= cfg.texture_weight
+            w[r_e.size : n_et] *= cfg.texture_weight
+            w[n_et:] *= cfg.ground_weight
             if self._gravity is not None:
                 # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
                 # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
@@ -546,9 +583,11 @@ class RackTracker:
                 if tex_uv.shape[0]:
                     tex_rack = self._texture.points_rack(pipes)
             if cfg.estimate_edge_bias:
-                bias = bias + x[i_bias:]
+                bias = bias + x[i_bias : i_bias + 2]
             last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
-                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size}
+                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size, "n_et": n_et,
+                    "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
+                    "ground_uv": ground[2] if has_ground and ground is not None else None}
             small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
                          and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
             # Also stop when the update moves the rendered edges by less than stop_px (median).
@@ -634,6 +673,73 @@ class RackTracker:
         self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
         self._polarity_known |= seen
 
+    def _reset_ground(self) -> None:
+        self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
+        self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
+        self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
+        self._z_g: float | None = None
+        self._z_g_var = 0.0
+
+    def _track_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection."""
+        cfg = self.config
+        if cfg.ground_points <= 0 or self._prev_gray is None or self._z_g is None or not self._ground_uv.shape[0]:
+            return None
+        X, _ = plane_points(self._ground_o, self._ground_d, self._z_g)
+        fin = np.all(np.isfinite(X), axis=1)
+        guess = self.camera.project((np.where(fin[:, None], X, 0.0) - T_pred[:3, 3]) @ T_pred[:3, :3])
+        guess = np.where((fin & np.all(np.isfinite(guess), axis=1))[:, None], guess, self._ground_uv)
+        uv, ok = track_points(self._prev_gray, gray, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
+        ok &= fin & self.camera.in_image(uv, 4.0)
+        return self._ground_o, self._ground_d[ok], uv[ok]
+
+    def _update_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray
+    ) -> None:
+        """Keep the ground points that fit, add new ones, store their rays from this (accepted) pose."""
+        cfg = self.config
+        if cfg.ground_points <= 0:
+            return
+        keep_uv = np.zeros((0, 2))
+        i_z = int(last["i_z"])
+        if i_z >= 0:
+            self._z_g = float(last["z_g"])
+            # Posterior variance plus a small random walk (the ground is not flat everywhere).
+            self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
+            r_g = last["r_post"][last["n_et"] :].reshape(-1, 2)
+            ok = np.linalg.norm(r_g, axis=1) <= cfg.gate_px  # the same gate as the solver's rows
+            ground_uv = last.get("ground_uv")
+            if ground_uv is not None and ground_uv.shape[0] == ok.size:
+                keep_uv = ground_uv[ok]
+        if self._z_g is None:
+            # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
+            top = 2.0 * float(np.max(self.model.radii))
+            self._z_g = top - 2.0 * max(float(T[2, 3]) - top, 0.5)
+            self._z_g_var = 2.0**2
+        need = cfg.ground_points - keep_uv.shape[0]
+        new = np.zeros((0, 2))
+        if need >= max(3, cfg.ground_points // 5):
+            new = detect_ground_points(gray, self._pipe_polygons(last["samples"]), keep_uv, need,
+                                       cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
+        uv = np.vstack([keep_uv, new])
+        self._ground_uv = uv
+        self._ground_o = T[:3, 3].copy()
+        self._ground_d = self.camera.unproject(uv) @ T[:3, :3].T if uv.shape[0] else np.zeros((0, 3))
+
+    def _pipe_polygons(self, samples: LimbSamples) -> list[FloatArray]:
+        """Image quadrilaterals of the pipes between their two clipped limb segments."""
+        polys = []
+        seg_l = samples.segment_limb
+        for pipe in np.unique(seg_l // 2):
+            a = np.flatnonzero(seg_l == 2 * pipe)
+            b = np.flatnonzero(seg_l == 2 * pipe + 1)
+            if a.size and b.size:
+                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
+                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        return polys
+
     def _update_profiles(self, samples: LimbSamples, inner: FloatArray, good: Any) -> None:
         """Running mean of each limb's normalised inner profile over its agreeing samples."""
         g = np.asarray(good, dtype=bool)
@@ -718,14 +824,7 @@ class RackTracker:
         if self._since_detect < cfg.detect_every and len(tm) >= 0.6 * cfg.max_texture_points:
             return
         self._since_detect = 0
-        polys = []
-        seg_l = samples.segment_limb
-        for pipe in np.unique(seg_l // 2):
-            a = np.flatnonzero(seg_l == 2 * pipe)
-            b = np.flatnonzero(seg_l == 2 * pipe + 1)
-            if a.size and b.size:
-                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
-                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        polys = self._pipe_polygons(samples)
         new_pipe, new_off, new_uv = detect_points(
             gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
             cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
