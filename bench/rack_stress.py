@@ -11,8 +11,8 @@ off the true first pose, then `track`). Trajectories: the MATLAB repository's to
 The matrix (CELLS x SEEDS) and the split of the seeds into a tuning half and a held-back half
 were frozen before any tuning; the held-back half is run once, at the end. Rows (tracker
 configurations) run on the same frames: `vision` (default config, vision only), `edge_only`
-(texture off), `prior` (vision + the gravity direction from an attitude with 0.3 deg coloured
-error). Each (cell, seed) frame set is rendered once and cached as the camera's JPEG bytes
+(texture off), `prior` (vision + the gravity direction from an attitude with 0.3 deg white
+noise per axis and frame). Each (cell, seed) frame set is rendered once and cached as the camera's JPEG bytes
 (`--cache-dir`), keyed by the scene and trajectory code, so reruns time only the tracker.
 
 Usage: python bench/rack_stress.py [--seeds tuning|heldback|all] [--quick] [--cells a,b] [--rows vision,edge_only]
@@ -236,7 +236,7 @@ def track_run(name: str, cell: dict[str, Any], seed: int, run: dict[str, Any], r
     dw = rng.standard_normal(3)
     off = np.concatenate([START_OFF_M * dp / np.linalg.norm(dp), START_OFF_RAD * dw / np.linalg.norm(dw)])
     tracker.reset(poses[0] @ se3.exp(off))
-    att_err = coloured(rng, len(poses), 3, np.radians(0.3), 1.0)
+    att_err = np.radians(0.3) * rng.standard_normal((len(poses), 3))  # white, 0.3 deg per axis
     perr, aerr, t_ms = [], [], []
     lost = 0
     gaps_100 = None

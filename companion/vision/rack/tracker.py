@@ -75,7 +75,8 @@ class RackTrackerConfig:
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
-    `velocity_prediction` enables the constant-velocity prediction.
+    `velocity_prediction` enables the constant-velocity prediction. `prior_rate_noise_rad`: the
+    per-frame random walk between the vision's attitude and the filtered attitude prior.
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
@@ -123,6 +124,7 @@ class RackTrackerConfig:
     prior_rotation_rad: float = 0.02
     prior_gap_m: float = 0.05
     reset_prior_translation_m: float = 0.01
+    prior_rate_noise_rad: float = 1e-3
     reset_prior_rotation_rad: float = 0.002
     motion_prior_translation_m: float = 0.03
     motion_prior_rotation_rad: float = 0.01
@@ -241,6 +243,10 @@ class RackTracker:
         # converts an attitude prior's standard deviation into the solver's information scale.
         self._scale2 = 0.5
         self._gravity: tuple[FloatArray, float] | None = None
+        # Filtered gravity ("up") of the attitude priors, carried in the rack frame through the
+        # estimated attitude (see `_fuse_gravity`), and its variance (rad^2).
+        self._up_rack: FloatArray | None = None
+        self._up_var = 0.0
         self._reset_ground()
 
     # ------------------------------------------------------------------ public API
@@ -256,6 +262,7 @@ class RackTracker:
             self._gaps = self.model.cumulative_gaps.copy()
         self._edge_bias = np.zeros(2)
         self._scale2 = 0.5
+        self._up_rack = None
         self._reset_ground()
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
@@ -287,7 +294,7 @@ class RackTracker:
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         gray = self._as_gray(image)
-        self._gravity = self._check_prior(R_prior, R_prior_std_rad)
+        prior = self._check_prior(R_prior, R_prior_std_rad)
         cfg = self.config
         cam = self.camera
         img_raw = gray.astype(np.float32)
@@ -304,6 +311,7 @@ class RackTracker:
             if 0.0 < dt <= 0.5:
                 T = T @ se3.exp_one(self._velocity * dt)
         T_pred = T.copy()
+        self._gravity = None if prior is None else self._fuse_gravity(prior[0], prior[1], T_pred)
         gaps = self._gaps.copy()
         pipes = self._pipe_arrays(gaps)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
@@ -396,6 +404,8 @@ class RackTracker:
             self._gaps = gaps
             self._edge_bias = last["bias"]
             self._scale2 = scale2
+            if self._gravity is not None:
+                self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
@@ -429,8 +439,34 @@ class RackTracker:
         )
 
     # ------------------------------------------------------------------ internals
+    def _fuse_gravity(self, R_prior: FloatArray, std_rad: float, T_pred: FloatArray) -> tuple[FloatArray, float]:
+        """Filtered attitude prior for this frame as (R whose last row is the up direction, row weight).
+
+        The up direction seen by the camera, g = R_rack_camᵀ e_z, is filtered over frames: the
+        last fused g is carried to this frame through the vision's attitude (precise from frame
+        to frame, with `prior_rate_noise_rad` of random walk per frame) and fused with this
+        frame's prior (std `std_rad`) by a scalar Kalman update. Independent per-frame prior
+        errors then average out while the vision's slow roll/slide error is still pulled back.
+        """
+        g_meas = R_prior[2, :]
+        var_meas = std_rad**2
+        if self._up_rack is None:
+            g, var = g_meas, var_meas
+        else:
+            g_pred = T_pred[:3, :3].T @ self._up_rack
+            var_p = self._up_var + self.config.prior_rate_noise_rad**2
+            k = var_p / (var_p + var_meas)
+            g = g_pred + k * (g_meas - g_pred)
+            g = g / np.linalg.norm(g)
+            var = (1.0 - k) * var_p
+        self._up_var = var
+        self._up_rack = T_pred[:3, :3] @ g
+        R_eff = np.zeros((3, 3))
+        R_eff[2, :] = g
+        return R_eff, self._scale2 * self.config.covariance_inflation / var
+
     def _check_prior(self, R_prior: Any, std_rad: float | None) -> tuple[FloatArray, float] | None:
-        """The attitude prior as (R (3, 3), row weight), or None; raises InputError naming the bad argument."""
+        """The attitude prior as (R (3, 3), std (rad)), or None; raises InputError naming the bad argument."""
         if R_prior is None and std_rad is None:
             return None
         if R_prior is None or std_rad is None:
@@ -442,7 +478,7 @@ class RackTracker:
         std = float(std_rad)
         if not np.isfinite(std) or std <= 0.0:
             raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
-        return R, self._scale2 * self.config.covariance_inflation / std**2
+        return R, std
 
     def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
         """`model.pipe_arrays(gaps)`, cached for the last gaps (read-only arrays, shared)."""
@@ -691,7 +727,13 @@ class RackTracker:
         fin = np.all(np.isfinite(X), axis=1)
         guess = self.camera.project((np.where(fin[:, None], X, 0.0) - T_pred[:3, 3]) @ T_pred[:3, :3])
         guess = np.where((fin & np.all(np.isfinite(guess), axis=1))[:, None], guess, self._ground_uv)
-        uv, ok = track_points(self._prev_gray, gray, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
+        # Exposure steps: bring this image to the previous one's mean level first (LK assumes constant brightness).
+        m_prev = float(self._prev_gray[::8, ::8].mean())
+        m_cur = float(gray[::8, ::8].mean())
+        cur = gray
+        if m_cur > 1.0 and abs(m_prev / m_cur - 1.0) > 0.03:
+            cur = np.asarray(cv2.convertScaleAbs(gray, alpha=m_prev / m_cur), dtype=np.uint8)
+        uv, ok = track_points(self._prev_gray, cur, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
         ok &= fin & self.camera.in_image(uv, 4.0)
         return self._ground_o, self._ground_d[ok], uv[ok]
 
