@@ -252,7 +252,7 @@ def track_run(name: str, cell: dict[str, Any], seed: int, run: dict[str, Any], r
         perr.append(p)
         aerr.append(a)
         lost += 0 if est.ok else 1
-        if k == 100:
+        if k == 100 and "model_gaps" in cell:
             gaps_100 = np.asarray(est.gaps) - true_model.cumulative_gaps
     return {"perr": perr, "aerr": aerr, "lost": lost, "t_ms": t_ms,
             "gap_err_100_cm": None if gaps_100 is None else float(100 * np.abs(gaps_100).max())}
@@ -411,7 +411,9 @@ def main() -> None:
                 print(f"{name} seed {seed} {r}: rms {100 * np.sqrt(np.mean(np.square(res['perr']))):.2f} cm "
                       f"{np.sqrt(np.mean(np.square(res['aerr']))):.3f} deg, lost {res['lost']}, "
                       f"{len(res['perr'])} frames", file=sys.stderr, flush=True)
-        out_cells[name] = {"spec": cell, "seeds": list(seeds), "rows": {r: summarize(v) for r, v in per_row.items()}}
+        if not args.render_only:
+            out_cells[name] = {"spec": cell, "seeds": list(seeds),
+                               "rows": {r: summarize(v) for r, v in per_row.items()}}
     if args.render_only:
         print(json.dumps({"benchmark": "rack_stress", "render_only": True, "seeds": args.seeds, "cells": wanted,
                           "elapsed_s": time.perf_counter() - t_start}))

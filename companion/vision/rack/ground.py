@@ -42,16 +42,23 @@ def ground_rows(
     """Rows (2K, 7) and residuals (2K,) of ground points X (K, 3) measured at pixels uv (K, 2).
 
     Columns: the pose twist (right perturbation, cam frame, as `pose_jacobian`) and z_g; the
-    residual is measured minus predicted pixel (px), the rows its first-order change.
+    residual is measured minus predicted pixel (px), the rows its first-order change. Points
+    with a NaN position (their ray misses the plane) or behind the camera get zero rows.
     """
     R = T_rack_cam[:3, :3]
-    p_cam = (X - T_rack_cam[:3, 3]) @ R
-    uv_hat, J = camera.project_with_jacobian(p_cam)
     k = X.shape[0]
-    A = np.empty((2 * k, 7))
-    A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
-    A[:, 6] = np.einsum("nij,nj->ni", J, dX_dz @ R).reshape(2 * k)
-    return A, (uv - uv_hat).reshape(-1)
+    A = np.zeros((2 * k, 7))
+    r = np.zeros((k, 2))
+    # Points whose ray misses the plane (NaN) or that are behind the camera give zero rows.
+    p_cam = (np.where(np.isfinite(X), X, 0.0) - T_rack_cam[:3, 3]) @ R
+    ok = np.all(np.isfinite(X), axis=1) & (p_cam[:, 2] > 1e-3)
+    if np.any(ok):
+        uv_hat, J = camera.project_with_jacobian(p_cam[ok])
+        rows = A.reshape(k, 2, 7)
+        rows[ok, :, :6] = pose_jacobian(J, p_cam[ok])
+        rows[ok, :, 6] = np.einsum("nij,nj->ni", J, dX_dz[ok] @ R)
+        r[ok] = uv[ok] - uv_hat
+    return A, r.reshape(-1)
 
 
 def detect_ground_points(

@@ -48,7 +48,9 @@ class RackTrackerConfig:
 
     Edges: `samples_per_limb` image-uniform samples per visible limb; `search_range_px` the
     half-length of the normal search while tracking; on the first frame after `reset` it starts
-    at `init_search_range_m` at the limbs' median depth (at most `init_search_range_px`) and
+    at `init_search_range_m` at the limbs' median depth (widened to three standard deviations of
+    the reset prior, and to `init_search_range_gaps_m` when the gaps are estimated; at most
+    `init_search_range_px`) and
     shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
     image blurred in proportion); `edge_threshold`
     the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
@@ -97,12 +99,13 @@ class RackTrackerConfig:
     samples_per_limb: int = 32
     search_range_px: int = 12
     init_search_range_px: int = 128
-    init_search_range_m: float = 0.25
+    init_search_range_m: float = 0.04
+    init_search_range_gaps_m: float = 0.25
     init_iterations: int = 16
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
-    edge_profile_px: int = 0
-    ground_points: int = 0
+    edge_profile_px: int = 8
+    ground_points: int = 60
     ground_weight: float = 1.0
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
@@ -141,14 +144,14 @@ class RackTrackerConfig:
     texture_refine_obs: int = 20
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
-    texture_min_corner_ratio: float = 0.0
+    texture_min_corner_ratio: float = 10.0
     texture_templates: bool = True
     template_half_px: int = 5
     template_iterations: int = 2
     template_min_ncc: float = 0.5
     min_edge_points: int = 20
     min_inlier_fraction: float = 0.35
-    max_residual_px: float = 2.0
+    max_residual_px: float = 3.0
     max_condition: float = 1e7
     inlier_px: float = 2.0
     covariance_inflation: float = 4.0
@@ -554,11 +557,16 @@ class RackTracker:
         it_done = 0
         init_px = float(cfg.init_search_range_px)
         if first:
-            # The first search covers init_search_range_m at the pipes' depth (capped in pixels).
+            # The first search covers init_search_range_m at the pipes' depth (capped in pixels), or
+            # three standard deviations of the reset pose if wider, or init_search_range_gaps_m when
+            # the gaps are estimated (a wrong gap moves a pipe further than the pose is off).
             s0 = sample_limbs(T, cam, pipes, 4, cfg.margin_px, 12.0, 0.1, 0.0)
             if s0.p_cam.shape[0]:
                 depth = median_1d(s0.p_cam[:, 2])
-                init_px = min(cam.fx * cfg.init_search_range_m / depth, float(cfg.init_search_range_px))
+                range_m = max(cfg.init_search_range_m,
+                              3.0 * (cfg.reset_prior_translation_m + cfg.reset_prior_rotation_rad * depth),
+                              cfg.init_search_range_gaps_m if cfg.estimate_gaps else 0.0)
+                init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
         for it in range(n_iter):
             it_done = it + 1
             if first:
@@ -750,7 +758,8 @@ class RackTracker:
             self._z_g = float(last["z_g"])
             # Posterior variance plus a small random walk (the ground is not flat everywhere).
             self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
-            r_g = last["r_post"][last["n_et"] :].reshape(-1, 2)
+            n_et = int(last["n_et"])
+            r_g = last["r_post"][n_et : n_et + 2 * last["ground_uv"].shape[0]].reshape(-1, 2)
             ok = np.linalg.norm(r_g, axis=1) <= cfg.gate_px  # the same gate as the solver's rows
             ground_uv = last.get("ground_uv")
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
