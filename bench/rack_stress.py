@@ -322,7 +322,7 @@ def acceptance(cells: dict[str, dict[str, Any]], summary: dict[str, Any]) -> dic
 
 
 # The tracker as it was before issue #14 (these options did not exist or had these values).
-OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tangent_px": 0.0,
+OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tangent_px": 0.0, "ground_points": 0,
                "max_residual_px": 2.0, "init_search_range_m": 0.25, "texture_weight": 20.0}
 
 
