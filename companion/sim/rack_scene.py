@@ -44,12 +44,15 @@ class RackSceneConfig:
     `ground_z_m`: height of the ground plane in the rack frame (m, below the support plane);
     `texel_m`: pipe texture resolution (m); `spots_per_m2`: rust spots per square metre of pipe
     surface; `light_dir_rack`: direction towards the light (rack frame); `ambient`: ambient
-    fraction; `sky_level`: intensity (0..1) of rays that hit nothing.
+    fraction; `sky_level`: intensity (0..1) of rays that hit nothing. `total_spots`, when set,
+    replaces `spots_per_m2`: exactly that many spots over all pipes, shared in proportion to
+    their surface (the paper's F features in total).
     """
 
     ground_z_m: float = -3.0
     texel_m: float = 0.004
     spots_per_m2: float = 30.0
+    total_spots: int | None = None
     ground_texel_m: float = 0.01
     ground_level: float = 0.22
     ground_contrast: float = 0.035
@@ -75,7 +78,9 @@ def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float
     return np.asarray(n / (std if std > 0 else 1.0), dtype=np.float32)
 
 
-def _pipe_texture(rng: np.random.Generator, radius_m: float, length_m: float, cfg: RackSceneConfig) -> FloatArray:
+def _pipe_texture(
+    rng: np.random.Generator, radius_m: float, length_m: float, cfg: RackSceneConfig, n_spots: int | None = None
+) -> FloatArray:
     """Albedo (rows: axial position, cols: arc length) of one pipe, values in [0, 1]."""
     n_ax = max(int(np.ceil(length_m / cfg.texel_m)), 2)
     n_arc = max(int(np.ceil(2.0 * np.pi * radius_m / cfg.texel_m)), 8)
@@ -85,7 +90,8 @@ def _pipe_texture(rng: np.random.Generator, radius_m: float, length_m: float, cf
     tex += 0.015 * _smooth_noise(rng, (n_ax, n_arc), 0.7)
     # Rust spots: dark blotches of random size, shape and darkness, soft-edged.
     area = length_m * 2.0 * np.pi * radius_m
-    n_spots = rng.poisson(cfg.spots_per_m2 * area)
+    if n_spots is None:
+        n_spots = int(rng.poisson(cfg.spots_per_m2 * area))
     alpha = np.zeros((n_ax, n_arc), dtype=np.float32)
     level = np.zeros((n_ax, n_arc), dtype=np.float32)
     for _ in range(int(n_spots)):
@@ -134,9 +140,14 @@ class RackScene:
         self.config = config or RackSceneConfig()
         rng = np.random.default_rng(seed)
         self._pipes = model.pipe_arrays()
+        counts: list[int | None] = [None] * self._pipes.radii.size
+        if self.config.total_spots is not None:
+            area = self._pipes.radii * self._pipes.lengths
+            drawn = np.random.default_rng([seed, 5]).multinomial(int(self.config.total_spots), area / area.sum())
+            counts = [int(c) for c in drawn]
         self._textures = [
-            _pipe_texture(rng, float(r), float(L), self.config)
-            for r, L in zip(self._pipes.radii, self._pipes.lengths, strict=True)
+            _pipe_texture(rng, float(r), float(L), self.config, n)
+            for r, L, n in zip(self._pipes.radii, self._pipes.lengths, counts, strict=True)
         ]
         self._ground = _ground_texture(rng, self.config)
         # Orthonormal basis (e1, e2) perpendicular to each pipe axis for the arc coordinate.

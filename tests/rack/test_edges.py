@@ -47,3 +47,24 @@ def test_bounded_range_and_flat_image() -> None:
     flat = np.full((60, 200), 90.0, dtype=np.float32)
     m = search_edges(flat, np.array([[100.0, 30.0]]), np.array([[0.0, 1.0]]), np.array([0.0]), 12, 5.0)
     assert not m.found[0]
+
+
+def test_expected_inner_profile_prefers_the_limb_over_a_stronger_ground_edge() -> None:
+    # A dark limb (x = 100) rising inwards into pale cladding (x < 100), then shadowed ground (x 100..105)
+    # and lit ground beyond: the lit/shadow step at 105 is stronger than the limb's, with the same sign.
+    x = np.arange(200, dtype=np.float64)
+    row = np.where(x < 100, 60.0 + 4.0 * np.clip(100 - x, 0, 25), np.where(x < 105, 80.0, 180.0))
+    img = np.asarray(cv2.GaussianBlur(np.tile(row, (40, 1)).astype(np.float32), (0, 0), 0.8))
+    uv = np.array([[101.0, 20.0]])
+    n = np.array([[1.0, 0.0]])  # outward: from the pipe to the ground
+    plain = search_edges(img, uv, n, np.array([1.0]), 8, 5.0)
+    assert abs(101.0 + plain.offset_px[0] - 105.0) < 0.6  # gradient alone: the shadow boundary
+    # The limb's inner profile, as learned at the true edge (a falling ramp towards the limb).
+    at_limb = search_edges(img, np.array([[100.0, 20.0]]), n, np.array([1.0]), 1, 5.0, inner_ref=np.zeros((1, 8)))
+    ref = at_limb.inner
+    assert ref.shape == (1, 8) and abs(np.linalg.norm(ref) - 1.0) < 1e-6
+    matched = search_edges(img, uv, n, np.array([1.0]), 8, 5.0, inner_ref=ref)
+    assert matched.found[0] and abs(101.0 + matched.offset_px[0] - 100.0) < 0.6
+    # No reference (zero row): the plain search.
+    none = search_edges(img, uv, n, np.array([1.0]), 8, 5.0, inner_ref=np.zeros((1, 8)))
+    np.testing.assert_allclose(none.offset_px, plain.offset_px)

@@ -10,6 +10,7 @@ from companion.vision.rack import RackModel
 from companion.vision.rack.limbs import sample_limbs
 from companion.vision.rack.motion import (
     gap_jacobian,
+    gravity_rows,
     median_1d,
     pose_jacobian,
     robust_weights,
@@ -123,3 +124,19 @@ def test_median_1d_matches_numpy(rng: np.random.Generator) -> None:
             assert median_1d(a) == float(np.median(a))
     assert median_1d(np.array([2.0, 2.0, 1.0, 1.0])) == 1.5
     assert np.isnan(median_1d(np.array([1.0, np.nan, 2.0])))
+
+
+def test_gravity_rows_match_central_differences(rng: np.random.Generator) -> None:
+    T = _pose(rng)
+    R_prior = so3.exp(rng.normal(0, 0.01, 3)) @ T[:3, :3]
+
+    def residual(delta: np.ndarray) -> np.ndarray:
+        return gravity_rows((T @ se3.exp(delta))[:3, :3], R_prior)[0]
+
+    r0, A = gravity_rows(T[:3, :3], R_prior)
+    # r(δ) ≈ r0 - A δ: the rows predict the residual's change (r = g_p - g, dg/dδ = A).
+    np.testing.assert_allclose(-A, central_jacobian(residual, np.zeros(6)), atol=1e-7)
+    # A heading-only difference leaves the residual at zero; a tilt does not.
+    yawed = so3.exp([0.0, 0.0, 0.3]) @ T[:3, :3]
+    assert np.abs(gravity_rows(T[:3, :3], yawed)[0]).max() < 1e-12
+    assert np.linalg.norm(r0) > 1e-3

@@ -140,3 +140,39 @@ def test_initial_search_is_retried_until_a_frame_is_accepted(scene: RackScene) -
     assert est.ok, est.status
     dp, da = _errors(est.T_rack_cam, T)
     assert dp < 0.02 and da < 0.3, (dp, da)
+
+
+def _tilt_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    """Angle (deg) between the rack's up axis as seen by the two camera attitudes."""
+    return float(np.degrees(np.arccos(np.clip(R_est[2, :] @ R_true[2, :], -1.0, 1.0))))
+
+
+def test_attitude_prior_pulls_the_tilt_by_its_weight() -> None:
+    model = RackModel.parallel(radii=[0.15, 0.2], gaps=[0.1], length=10.0)
+    scene = RackScene(model, seed=4)
+    T = se3.make(so3.exp([0.02, 0.01, 0.05]) @ R_DOWN, [0.3, 4.0, 2.3])
+    rng = np.random.default_rng(2)
+    frames = [scene.render(T, CAM, noise_std=3.0, rng=rng) for _ in range(6)]
+    # A prior tilted 1 deg about the pipes' axis (the roll that trades against a sideways slide).
+    R_off = so3.exp([0.0, np.radians(1.0), 0.0]) @ T[:3, :3]
+    tilts = {}
+    for std_deg in (None, 0.02, 30.0):
+        tr = RackTracker(model, CAM)
+        tr.reset(T)
+        for k, img in enumerate(frames):
+            if std_deg is None:
+                est = tr.track(img, 0.04 * k)
+            else:
+                est = tr.track(img, 0.04 * k, R_prior=R_off, R_prior_std_rad=np.radians(std_deg))
+            assert est.ok, est.status
+        tilts[std_deg] = _tilt_deg(est.T_rack_cam[:3, :3], T[:3, :3])
+    assert tilts[None] < 0.2 and tilts[30.0] < 0.2  # vision alone, and with a prior too weak to matter
+    assert 0.7 < tilts[0.02] < 1.05  # a strong prior wins in the direction it constrains
+    tr = RackTracker(model, CAM)
+    tr.reset(T)
+    with pytest.raises(InputError, match="R_prior"):
+        tr.track(frames[0], 0.0, R_prior=T[:3, :3])
+    with pytest.raises(InputError, match="R_prior"):
+        tr.track(frames[0], 0.0, R_prior=np.eye(3) * 2.0, R_prior_std_rad=0.01)
+    with pytest.raises(InputError, match="R_prior_std_rad"):
+        tr.track(frames[0], 0.0, R_prior=T[:3, :3], R_prior_std_rad=0.0)

@@ -12,7 +12,7 @@ the opposite polarity). Pixels follow OpenCV (integer coordinates are pixel cent
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -32,6 +32,8 @@ class EdgeMeasurements:
     found: BoolArray
     sign: FloatArray
     strength: FloatArray
+    # (N, M) zero-mean, unit-norm image profile on the inner side of the chosen edge (M = 0 unless asked).
+    inner: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 @functools.lru_cache(maxsize=64)
@@ -56,6 +58,7 @@ def search_edges(
     prior_sigma_px: float | None = None,
     tangent_offset_px: float = 0.0,
     forward_difference: bool = False,
+    inner_ref: FloatArray | None = None,
 ) -> EdgeMeasurements:
     """Search edges for N samples at `uv` (N, 2) along unit `normal` (N, 2).
 
@@ -65,6 +68,14 @@ def search_edges(
     lines that far apart (noise reduction without pre-blurring the image). With
     `forward_difference` the derivative is I(k+1) - I(k), located at k + 1/2 (less biased by
     shading ramps next to a sharp silhouette than the central difference).
+
+    Expected edge profile: with `inner_ref` (N, M) each candidate's M samples on its inner side
+    (k-M..k-1, towards the pipe) are compared with the sample's reference (zero-mean, unit-norm;
+    a zero row = no reference) by normalised correlation c, and its score is multiplied by
+    ((1 + c) / 2)^2. The pipe's own shading next to its limb is stable from frame to frame (and
+    gain-invariant after normalisation); a ground or shadow edge a few pixels outside the limb
+    has the limb and the ground in that window instead. The chosen candidates' inner profiles
+    are returned in `inner` (for learning the reference).
     """
     n = uv.shape[0]
     R = int(range_px)
@@ -72,6 +83,9 @@ def search_edges(
         z = np.zeros(0)
         return EdgeMeasurements(offset_px=z, found=np.zeros(0, dtype=bool), sign=z, strength=z)
     k, prior = _search_constants(R, prior_sigma_px)
+    M = 0 if inner_ref is None else int(inner_ref.shape[1])
+    if M:
+        k = np.arange(-R - 1 - M, R + 2, dtype=np.float32)  # M more samples on the inner side
     nrm = normal.astype(np.float32)
     base = uv.astype(np.float32)
     if tangent_offset_px > 0:
@@ -94,11 +108,18 @@ def search_edges(
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if n_taps > 1:
         prof = prof.reshape(n, n_taps, -1).mean(axis=1)
+    pol = np.asarray(polarity, dtype=np.float32)[:, None]
+    windows = None
+    if M:
+        # Candidate k = -R + c: its inner window k-M..k-1 is prof[c+1 : c+1+M] (prof starts at -R-1-M).
+        windows = np.lib.stride_tricks.sliding_window_view(prof[:, 1:], M, axis=1)[:, : 2 * R + 1, :]
+        windows = windows - windows.mean(axis=2, keepdims=True)
+        windows = windows / np.maximum(np.sqrt((windows * windows).sum(axis=2, keepdims=True)), 1e-3)
+        prof = prof[:, M:]
     if forward_difference:
         g = prof[:, 2:] - prof[:, 1:-1]  # (N, 2R+1) at k + 1/2, k = -R..R
     else:
         g = prof[:, 2:] - prof[:, :-2]  # (N, 2R+1) at k = -R..R
-    pol = np.asarray(polarity, dtype=np.float32)[:, None]
     has_pol = pol != 0.0
     if has_pol.all():
         signed = g * pol
@@ -107,6 +128,12 @@ def search_edges(
     else:
         signed = np.where(has_pol, g * pol, np.abs(g))
     score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
+    if windows is not None and inner_ref is not None:
+        ref = np.asarray(inner_ref, dtype=np.float32)
+        has_ref = (ref * ref).sum(axis=1) > 0.25
+        ncc = np.einsum("ncm,nm->nc", windows, ref)
+        factor = np.square(np.clip(0.5 + 0.5 * ncc, 0.0, 1.0))
+        score = np.where(has_ref[:, None], score * factor, score)
     best = np.argmax(score, axis=1)
     width = 2 * R + 1
     row0 = np.arange(n) * width  # flat index of each row's k = -R
@@ -121,9 +148,11 @@ def search_edges(
     frac = np.minimum(np.maximum(frac, -0.5), 0.5)
     offset = (b - R).astype(np.float64) + frac + (0.5 if forward_difference else 0.0)
     g_b = g.ravel()[i_b]
+    inner = np.zeros((n, 0)) if windows is None else windows[np.arange(n), b].astype(np.float64)
     return EdgeMeasurements(
         offset_px=offset,
         found=np.asarray(found),
         sign=np.sign(g_b).astype(np.float64),
         strength=np.abs(g_b).astype(np.float64),
+        inner=inner,
     )

@@ -108,3 +108,19 @@ def information_condition(H: FloatArray, basis: Any = None) -> float:
     if ev[0] <= 0.0:
         return float("inf")
     return float(ev[-1] / ev[0])
+
+
+def gravity_rows(R_rack_cam: FloatArray, R_rack_cam_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Residual (3,) and Jacobian (3, 6) of the gravity direction of an attitude prior.
+
+    The rack's up axis seen in the camera frame is g = R_rack_camᵀ e_z; the prior's is
+    g_p = R_rack_cam_priorᵀ e_z (only this direction is used: the prior's heading is ignored).
+    Residual r = g_p - g (unitless, ≈ the tilt difference in rad); under the right perturbation
+    R' = R exp(w), g' = exp(-w) g ≈ g + hat(g) w, so d g / d δ = [0, hat(g)] and the rows are
+    r ≈ A δ with A = [0, hat(g)] (rank 2: rotations about g do not change it).
+    """
+    g = np.asarray(R_rack_cam, dtype=np.float64)[2, :]  # = R_rack_camᵀ e_z
+    g_p = np.asarray(R_rack_cam_prior, dtype=np.float64)[2, :]
+    A = np.zeros((3, 6))
+    A[:, 3:] = [[0.0, -g[2], g[1]], [g[2], 0.0, -g[0]], [-g[1], g[0], 0.0]]
+    return g_p - g, A

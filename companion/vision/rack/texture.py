@@ -139,8 +139,15 @@ def detect_points(
     max_new: int,
     min_distance_px: float,
     min_incidence_cos: float,
+    min_corner_ratio: float = 0.0,
 ) -> tuple[IntArray, FloatArray, FloatArray]:
-    """New texture points: (pipe (J,), offset from the pipe's axis start (J, 3), uv (J, 2))."""
+    """New texture points: (pipe (J,), offset from the pipe's axis start (J, 3), uv (J, 2)).
+
+    With `min_corner_ratio` > 0 a corner's minimum structure-tensor eigenvalue must reach that
+    multiple of the median inside the pipes' regions (their noise floor): Shi-Tomasi's quality
+    level is relative to the strongest corner, so on plain cladding it accepts noise and JPEG
+    blocks as points.
+    """
     empty = (np.zeros(0, dtype=np.intp), np.zeros((0, 3)), np.zeros((0, 2)))
     if max_new <= 0 or not pipe_polygons:
         return empty
@@ -163,6 +170,16 @@ def detect_points(
     if corners is None:
         return empty
     uv = corners.reshape(-1, 2).astype(np.float64) + np.array([x, y], dtype=np.float64)
+    if min_corner_ratio > 0:
+        roi = gray[y : y + h, x : x + w]
+        ev = np.asarray(cv2.cornerMinEigenVal(roi, 7, ksize=3))
+        inside = mask[y : y + h, x : x + w] > 0
+        floor = float(np.median(ev[inside])) if np.any(inside) else 0.0
+        c = np.rint(corners.reshape(-1, 2)).astype(np.intp)
+        strong = ev[np.clip(c[:, 1], 0, h - 1), np.clip(c[:, 0], 0, w - 1)] >= min_corner_ratio * floor
+        uv = uv[strong]
+        if uv.shape[0] == 0:
+            return empty
     rays_cam = camera.unproject(uv)
     R = T_rack_cam[:3, :3]
     o = T_rack_cam[:3, 3]

@@ -24,10 +24,12 @@ from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
 from companion.vision.rack.edges import search_edges
+from companion.vision.rack.ground import detect_ground_points, ground_rows, plane_points
 from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
     gap_jacobian,
+    gravity_rows,
     information_condition,
     median_1d,
     pose_jacobian,
@@ -46,10 +48,20 @@ class RackTrackerConfig:
 
     Edges: `samples_per_limb` image-uniform samples per visible limb; `search_range_px` the
     half-length of the normal search while tracking; on the first frame after `reset` it starts
-    at `init_search_range_m` at the limbs' median depth (at most `init_search_range_px`) and
+    at `init_search_range_m` at the limbs' median depth (widened to three standard deviations of
+    the reset prior, and to `init_search_range_gaps_m` when the gaps are estimated; at most
+    `init_search_range_px`) and
     shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
     image blurred in proportion); `edge_threshold`
-    the minimum |I(k+1) - I(k-1)| (grey levels); `blur_sigma_px` an optional Gaussian pre-blur;
+    the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
+    learned inner edge profile that candidates are matched against (`search_edges`, 0 = off),
+    `edge_profile_rate` its per-frame learning rate; `ground_points` the number of ground corners
+    tracked frame to frame as a second reference (plane z = z_g, height estimated online; see
+    `ground.py`; 0 = off), `ground_weight` their rows' weight relative to edge rows,
+    `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
+    random walk allowed to z_g; `edge_tangent_px` > 0 averages each
+    profile with two parallel ones that far along the limb (texture next to a straight limb
+    averages out); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
     Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
@@ -65,12 +77,14 @@ class RackTrackerConfig:
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
-    `velocity_prediction` enables the constant-velocity prediction.
+    `velocity_prediction` enables the constant-velocity prediction. `prior_rate_noise_rad`: the
+    per-frame random walk between the vision's attitude and the filtered attitude prior.
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
     a point's 3-D position is averaged over (1 = keep the position from the first sighting),
-    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points);
+    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
+    `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
     `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
     patch (from the image it was found in), warped into the current view through the pipe's
     tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
@@ -85,10 +99,18 @@ class RackTrackerConfig:
     samples_per_limb: int = 32
     search_range_px: int = 12
     init_search_range_px: int = 128
-    init_search_range_m: float = 0.25
+    init_search_range_m: float = 0.04
+    init_search_range_gaps_m: float = 0.25
     init_iterations: int = 16
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
+    edge_profile_px: int = 8
+    ground_points: int = 60
+    ground_weight: float = 1.0
+    ground_min_corner_ratio: float = 0.0
+    ground_height_walk_m: float = 0.002
+    edge_profile_rate: float = 0.1
+    edge_tangent_px: float = 0.0
     blur_sigma_px: float = 0.0
     polarity_rate: float = 0.1
     margin_px: float = 6.0
@@ -105,6 +127,7 @@ class RackTrackerConfig:
     prior_rotation_rad: float = 0.02
     prior_gap_m: float = 0.05
     reset_prior_translation_m: float = 0.01
+    prior_rate_noise_rad: float = 1e-3
     reset_prior_rotation_rad: float = 0.002
     motion_prior_translation_m: float = 0.03
     motion_prior_rotation_rad: float = 0.01
@@ -121,13 +144,14 @@ class RackTrackerConfig:
     texture_refine_obs: int = 20
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
+    texture_min_corner_ratio: float = 10.0
     texture_templates: bool = True
     template_half_px: int = 5
     template_iterations: int = 2
     template_min_ncc: float = 0.5
     min_edge_points: int = 20
     min_inlier_fraction: float = 0.35
-    max_residual_px: float = 2.0
+    max_residual_px: float = 3.0
     max_condition: float = 1e7
     inlier_px: float = 2.0
     covariance_inflation: float = 4.0
@@ -205,6 +229,8 @@ class RackTracker:
         self._edge_bias = np.zeros(2)
         self._polarity = np.zeros(n_limbs)
         self._polarity_known = np.zeros(n_limbs, dtype=bool)
+        # Learned inner edge profile of each limb (zero rows: none yet); see `search_edges`.
+        self._profiles = np.zeros((n_limbs, self.config.edge_profile_px))
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
         self._velocity = np.zeros(6)
@@ -214,8 +240,17 @@ class RackTracker:
         self._since_detect = 0
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
-        self._weights_cache: dict[bool, tuple[FloatArray, FloatArray]] = {}
+        self._weights_cache: dict[tuple[bool, int], tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
+        # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
+        # converts an attitude prior's standard deviation into the solver's information scale.
+        self._scale2 = 0.5
+        self._gravity: tuple[FloatArray, float] | None = None
+        # Filtered gravity ("up") of the attitude priors, carried in the rack frame through the
+        # estimated attitude (see `_fuse_gravity`), and its variance (rad^2).
+        self._up_rack: FloatArray | None = None
+        self._up_var = 0.0
+        self._reset_ground()
 
     # ------------------------------------------------------------------ public API
     def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
@@ -229,8 +264,12 @@ class RackTracker:
         else:
             self._gaps = self.model.cumulative_gaps.copy()
         self._edge_bias = np.zeros(2)
+        self._scale2 = 0.5
+        self._up_rack = None
+        self._reset_ground()
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
+        self._profiles[:] = 0.0
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray = None
         self._velocity = np.zeros(6)
@@ -245,11 +284,20 @@ class RackTracker:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         return self._T.copy()
 
-    def track(self, image: Any, stamp_s: float) -> RackEstimate:
-        """Track one frame: `image` (H, W) uint8 gray or (H, W, 3) uint8 BGR, `stamp_s` capture time (s)."""
+    def track(
+        self, image: Any, stamp_s: float, R_prior: Any = None, R_prior_std_rad: float | None = None
+    ) -> RackEstimate:
+        """Track one frame: `image` (H, W) uint8 gray or (H, W, 3) uint8 BGR, `stamp_s` capture time (s).
+
+        Optional attitude prior: `R_prior` (3x3) an estimate of R_rack_cam (e.g. the autopilot's
+        attitude brought into the rack frame) and `R_prior_std_rad` its tilt error (rad, 1 sigma).
+        Only its gravity direction is used (two tilt angles, not the heading); without it the
+        tracker is vision only.
+        """
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         gray = self._as_gray(image)
+        prior = self._check_prior(R_prior, R_prior_std_rad)
         cfg = self.config
         cam = self.camera
         img_raw = gray.astype(np.float32)
@@ -266,6 +314,7 @@ class RackTracker:
             if 0.0 < dt <= 0.5:
                 T = T @ se3.exp_one(self._velocity * dt)
         T_pred = T.copy()
+        self._gravity = None if prior is None else self._fuse_gravity(prior[0], prior[1], T_pred)
         gaps = self._gaps.copy()
         pipes = self._pipe_arrays(gaps)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
@@ -287,6 +336,7 @@ class RackTracker:
             if self._stale_ref.size == tex_ok.size:
                 self._stale_ref = self._stale_ref[tex_ok]
             tex_uv = tex_uv[tex_ok]
+        ground = self._track_ground(gray, T)
         # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
         if first:
             n_p = self.model.num_parallel
@@ -295,14 +345,14 @@ class RackTracker:
                 pol_h = np.zeros(self._polarity.size)
                 pol_h[0 : 2 * n_p : 2] = hyp[0]
                 pol_h[1 : 2 * n_p : 2] = hyp[1]
-                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h)
+                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h, None)
                 if best is None or res["n_agree"] > best["n_agree"]:
                     best = res
             assert best is not None
             last = best
         else:
             pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
-            last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t)
+            last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
         T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
         # ---- health
         x = last["x"]
@@ -337,7 +387,8 @@ class RackTracker:
         # ---- covariance from the final normal matrix and residual scale
         wpos = w > 0
         dof = max(int(wpos.sum()) - x.size, 1)
-        scale2 = float(np.sum(w * r_post**2) / dof)
+        n_rows = r_post.size - (3 if self._gravity is not None else 0)
+        scale2 = float(np.sum(w[:n_rows] * r_post[:n_rows] ** 2) / dof)
         try:
             cov_full = np.linalg.inv(last["H"]) * scale2 * cfg.covariance_inflation
         except np.linalg.LinAlgError:
@@ -355,12 +406,18 @@ class RackTracker:
             self._T = T
             self._gaps = gaps
             self._edge_bias = last["bias"]
+            self._scale2 = scale2
+            if self._gravity is not None:
+                self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True
             self._update_polarity(last["samples"], last["meas"].sign, agree)
+            self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
+            self._update_ground(gray, T, last, cov_full)
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
+            self._ground_uv = np.zeros((0, 2))
             if len(self._texture):
                 self._texture.uv_last = tex_uv
             cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)
@@ -385,6 +442,47 @@ class RackTracker:
         )
 
     # ------------------------------------------------------------------ internals
+    def _fuse_gravity(self, R_prior: FloatArray, std_rad: float, T_pred: FloatArray) -> tuple[FloatArray, float]:
+        """Filtered attitude prior for this frame as (R whose last row is the up direction, row weight).
+
+        The up direction seen by the camera, g = R_rack_camᵀ e_z, is filtered over frames: the
+        last fused g is carried to this frame through the vision's attitude (precise from frame
+        to frame, with `prior_rate_noise_rad` of random walk per frame) and fused with this
+        frame's prior (std `std_rad`) by a scalar Kalman update. Independent per-frame prior
+        errors then average out while the vision's slow roll/slide error is still pulled back.
+        """
+        g_meas = R_prior[2, :]
+        var_meas = std_rad**2
+        if self._up_rack is None:
+            g, var = g_meas, var_meas
+        else:
+            g_pred = T_pred[:3, :3].T @ self._up_rack
+            var_p = self._up_var + self.config.prior_rate_noise_rad**2
+            k = var_p / (var_p + var_meas)
+            g = g_pred + k * (g_meas - g_pred)
+            g = g / np.linalg.norm(g)
+            var = (1.0 - k) * var_p
+        self._up_var = var
+        self._up_rack = T_pred[:3, :3] @ g
+        R_eff = np.zeros((3, 3))
+        R_eff[2, :] = g
+        return R_eff, self._scale2 * self.config.covariance_inflation / var
+
+    def _check_prior(self, R_prior: Any, std_rad: float | None) -> tuple[FloatArray, float] | None:
+        """The attitude prior as (R (3, 3), std (rad)), or None; raises InputError naming the bad argument."""
+        if R_prior is None and std_rad is None:
+            return None
+        if R_prior is None or std_rad is None:
+            raise InputError("R_prior: give both R_prior and R_prior_std_rad, or neither")
+        R = np.asarray(R_prior, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
+                or np.linalg.det(R) < 0:
+            raise InputError(f"R_prior: expected a 3x3 rotation matrix, got shape {R.shape}")
+        std = float(std_rad)
+        if not np.isfinite(std) or std <= 0.0:
+            raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
+        return R, std
+
     def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
         """`model.pipe_arrays(gaps)`, cached for the last gaps (read-only arrays, shared)."""
         key = np.asarray(gaps, dtype=np.float64).tobytes()
@@ -397,27 +495,27 @@ class RackTracker:
 
     def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
         """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
-        cached = self._weights_cache.get(first)
+        key = (first, n_par)
+        cached = self._weights_cache.get(key)
         if cached is not None:
             return cached
         cfg = self.config
-        prior = np.empty(n_par)
+        prior = np.ones(n_par)
         prior[:3] = 1.0 / cfg.prior_translation_m**2
         prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
         prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
-        prior[i_bias:] = 1.0
         anchor_info = np.zeros(n_par)
         if first:
             anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
             anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / 0.3**2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / 0.3**2
         else:
             anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
             anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
-            anchor_info[i_bias:] = 1.0 / cfg.edge_bias_rate_px**2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / cfg.edge_bias_rate_px**2
         prior.flags.writeable = False
         anchor_info.flags.writeable = False
-        self._weights_cache[first] = (prior, anchor_info)
+        self._weights_cache[key] = (prior, anchor_info)
         return prior, anchor_info
 
     def _solve(
@@ -429,15 +527,27 @@ class RackTracker:
         tex_uv: FloatArray,
         first: bool,
         polarity: FloatArray,
+        ground: tuple[FloatArray, FloatArray, FloatArray] | None,
     ) -> dict[str, Any]:
-        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state."""
+        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state.
+
+        `ground`: (ray origin (3,), ray directions (K, 3), current pixels (K, 2)) of the ground
+        points (rack frame), or None; with them the ground height z_g is the last parameter.
+        """
         cfg = self.config
         cam = self.camera
         n_iter = cfg.init_iterations if first else cfg.max_iterations
         n_gap = self._n_gaps if cfg.estimate_gaps else 0
         i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
         n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
+        has_ground = ground is not None and ground[1].shape[0] > 0 and self._z_g is not None
+        i_z = n_par
+        n_par += 1 if has_ground else 0
         prior, anchor_info = self._solver_weights(first, n_par, i_bias)
+        if has_ground:
+            prior, anchor_info = prior.copy(), anchor_info.copy()
+            prior[i_z] = 1.0
+            anchor_info[i_z] = 1.0 / self._z_g_var
         pipes = self._pipe_arrays(gaps)
         # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
         tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
@@ -447,11 +557,16 @@ class RackTracker:
         it_done = 0
         init_px = float(cfg.init_search_range_px)
         if first:
-            # The first search covers init_search_range_m at the pipes' depth (capped in pixels).
+            # The first search covers init_search_range_m at the pipes' depth (capped in pixels), or
+            # three standard deviations of the reset pose if wider, or init_search_range_gaps_m when
+            # the gaps are estimated (a wrong gap moves a pipe further than the pose is off).
             s0 = sample_limbs(T, cam, pipes, 4, cfg.margin_px, 12.0, 0.1, 0.0)
             if s0.p_cam.shape[0]:
                 depth = median_1d(s0.p_cam[:, 2])
-                init_px = min(cam.fx * cfg.init_search_range_m / depth, float(cfg.init_search_range_px))
+                range_m = max(cfg.init_search_range_m,
+                              3.0 * (cfg.reset_prior_translation_m + cfg.reset_prior_rotation_rad * depth),
+                              cfg.init_search_range_gaps_m if cfg.estimate_gaps else 0.0)
+                init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
         for it in range(n_iter):
             it_done = it + 1
             if first:
@@ -467,7 +582,9 @@ class RackTracker:
                 sigma = max(cfg.blur_sigma_px, rng_px / 16.0)
                 img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
                 thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
-            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr)
+            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
+                                tangent_offset_px=cfg.edge_tangent_px,
+                                inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
             A_e, r_e, f = self._edge_rows(samples, meas.offset_px, meas.found, T, gaps, n_par)
             if cfg.estimate_edge_bias:
                 side = samples.limb[f] % 2
@@ -479,8 +596,28 @@ class RackTracker:
             gate = None
             if it > 0:
                 gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
+            n_et = r.size
+            if has_ground:
+                assert ground is not None and self._z_g is not None
+                X, dXdz = plane_points(ground[0], ground[1], self._z_g + moved[i_z])
+                A_g7, r_g = ground_rows(T, cam, X, dXdz, ground[2])
+                A_g = np.zeros((r_g.size, n_par))
+                A_g[:, :6] = A_g7[:, :6]
+                A_g[:, i_z] = A_g7[:, 6]
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
             w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
-            w[r_e.size :] *= cfg.texture_weight
+            w[r_e.size : n_et] *= cfg.texture_weight
+            w[n_et:] *= cfg.ground_weight
+            if self._gravity is not None:
+                # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
+                # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
+                r_g, A_g6 = gravity_rows(T[:3, :3], self._gravity[0])
+                A_g = np.zeros((3, n_par))
+                A_g[:, :6] = A_g6
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
+                w = np.concatenate([w, np.full(3, self._gravity[1])])
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
             T = T @ se3.exp_one(x[:6])
@@ -490,9 +627,11 @@ class RackTracker:
                 if tex_uv.shape[0]:
                     tex_rack = self._texture.points_rack(pipes)
             if cfg.estimate_edge_bias:
-                bias = bias + x[i_bias:]
+                bias = bias + x[i_bias : i_bias + 2]
             last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
-                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size}
+                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size, "n_et": n_et,
+                    "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
+                    "ground_uv": ground[2] if has_ground and ground is not None else None}
             small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
                          and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
             # Also stop when the update moves the rendered edges by less than stop_px (median).
@@ -578,6 +717,99 @@ class RackTracker:
         self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
         self._polarity_known |= seen
 
+    def _reset_ground(self) -> None:
+        self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
+        self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
+        self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
+        self._z_g: float | None = None
+        self._z_g_var = 0.0
+
+    def _track_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection."""
+        cfg = self.config
+        if cfg.ground_points <= 0 or self._prev_gray is None or self._z_g is None or not self._ground_uv.shape[0]:
+            return None
+        X, _ = plane_points(self._ground_o, self._ground_d, self._z_g)
+        fin = np.all(np.isfinite(X), axis=1)
+        guess = self.camera.project((np.where(fin[:, None], X, 0.0) - T_pred[:3, 3]) @ T_pred[:3, :3])
+        guess = np.where((fin & np.all(np.isfinite(guess), axis=1))[:, None], guess, self._ground_uv)
+        # Exposure steps: bring this image to the previous one's mean level first (LK assumes constant brightness).
+        m_prev = float(self._prev_gray[::8, ::8].mean())
+        m_cur = float(gray[::8, ::8].mean())
+        cur = gray
+        if m_cur > 1.0 and abs(m_prev / m_cur - 1.0) > 0.03:
+            cur = np.asarray(cv2.convertScaleAbs(gray, alpha=m_prev / m_cur), dtype=np.uint8)
+        uv, ok = track_points(self._prev_gray, cur, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
+        ok &= fin & self.camera.in_image(uv, 4.0)
+        return self._ground_o, self._ground_d[ok], uv[ok]
+
+    def _update_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray
+    ) -> None:
+        """Keep the ground points that fit, add new ones, store their rays from this (accepted) pose."""
+        cfg = self.config
+        if cfg.ground_points <= 0:
+            return
+        keep_uv = np.zeros((0, 2))
+        i_z = int(last["i_z"])
+        if i_z >= 0:
+            self._z_g = float(last["z_g"])
+            # Posterior variance plus a small random walk (the ground is not flat everywhere).
+            self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
+            n_et = int(last["n_et"])
+            r_g = last["r_post"][n_et : n_et + 2 * last["ground_uv"].shape[0]].reshape(-1, 2)
+            ok = np.linalg.norm(r_g, axis=1) <= cfg.gate_px  # the same gate as the solver's rows
+            ground_uv = last.get("ground_uv")
+            if ground_uv is not None and ground_uv.shape[0] == ok.size:
+                keep_uv = ground_uv[ok]
+        if self._z_g is None:
+            # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
+            top = 2.0 * float(np.max(self.model.radii))
+            self._z_g = top - 2.0 * max(float(T[2, 3]) - top, 0.5)
+            self._z_g_var = 2.0**2
+        need = cfg.ground_points - keep_uv.shape[0]
+        new = np.zeros((0, 2))
+        if need >= max(3, cfg.ground_points // 5):
+            new = detect_ground_points(gray, self._pipe_polygons(last["samples"]), keep_uv, need,
+                                       cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
+        uv = np.vstack([keep_uv, new])
+        self._ground_uv = uv
+        self._ground_o = T[:3, 3].copy()
+        self._ground_d = self.camera.unproject(uv) @ T[:3, :3].T if uv.shape[0] else np.zeros((0, 3))
+
+    def _pipe_polygons(self, samples: LimbSamples) -> list[FloatArray]:
+        """Image quadrilaterals of the pipes between their two clipped limb segments."""
+        polys = []
+        seg_l = samples.segment_limb
+        for pipe in np.unique(seg_l // 2):
+            a = np.flatnonzero(seg_l == 2 * pipe)
+            b = np.flatnonzero(seg_l == 2 * pipe + 1)
+            if a.size and b.size:
+                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
+                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        return polys
+
+    def _update_profiles(self, samples: LimbSamples, inner: FloatArray, good: Any) -> None:
+        """Running mean of each limb's normalised inner profile over its agreeing samples."""
+        g = np.asarray(good, dtype=bool)
+        if self.config.edge_profile_px <= 0 or inner.shape[1] != self._profiles.shape[1] or not np.any(g):
+            return
+        limbs = samples.limb[g]
+        n_l = self._profiles.shape[0]
+        cnt = np.bincount(limbs, minlength=n_l)
+        acc = np.zeros_like(self._profiles)
+        np.add.at(acc, limbs, inner[g])
+        seen = cnt >= 3
+        mean = acc[seen] / cnt[seen, None]
+        norm = np.linalg.norm(mean, axis=1, keepdims=True)
+        mean = mean / np.maximum(norm, 1e-9)  # unit norm: the reference; a weak norm = inconsistent shapes
+        fresh = seen & ~np.any(self._profiles != 0.0, axis=1)
+        rate = np.where(fresh[seen], 1.0, self.config.edge_profile_rate)[:, None]
+        upd = (1.0 - rate) * self._profiles[seen] + rate * mean * np.minimum(norm, 1.0)
+        self._profiles[seen] = upd
+
     def _ref_patch_size(self) -> int:
         """Side of the stored reference patches: room for the window scaled by up to ~1.6."""
         half = int(np.ceil(1.6 * (self.config.template_half_px + 1))) + 1
@@ -643,17 +875,10 @@ class RackTracker:
         if self._since_detect < cfg.detect_every and len(tm) >= 0.6 * cfg.max_texture_points:
             return
         self._since_detect = 0
-        polys = []
-        seg_l = samples.segment_limb
-        for pipe in np.unique(seg_l // 2):
-            a = np.flatnonzero(seg_l == 2 * pipe)
-            b = np.flatnonzero(seg_l == 2 * pipe + 1)
-            if a.size and b.size:
-                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
-                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        polys = self._pipe_polygons(samples)
         new_pipe, new_off, new_uv = detect_points(
             gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
-            cfg.texture_min_incidence_cos,
+            cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
         )
         if new_pipe.size:
             tm.add(new_pipe, new_off, new_uv, sample_patches(img_f, new_uv, half_ref), T)

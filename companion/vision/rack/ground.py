@@ -1,0 +1,102 @@
+"""The ground under the rack as a second, independent reference: a plane z = z_g (rack frame, m)
+whose height is estimated online with the pose.
+
+Limbs of a few parallel pipes at one depth leave two combinations nearly unobservable: the
+translation along the pipes (without texture in view) and a roll traded against a sideways
+slide. Points on the ground, at a different depth, separate both. Each ground corner is found in
+the previous image outside the pipes, its ray from the previous (accepted) pose is intersected
+with the plane, and its Lucas-Kanade position in the current image is a measurement of the
+current pose and of z_g: a frame-to-frame (visual odometry) constraint that stops drift in
+those directions; the pipes' limbs keep the absolute pose. Pure functions, vectorized over points.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.motion import pose_jacobian
+
+
+def plane_points(o_rack: FloatArray, d_rack: FloatArray, z_g: float) -> tuple[FloatArray, FloatArray]:
+    """Intersections X (K, 3) of rays o + t d (rack frame) with the plane z = z_g, and dX/dz_g (K, 3).
+
+    Rays that do not point down towards the plane give NaN rows.
+    """
+    dz = d_rack[:, 2]
+    ok = dz < -1e-6
+    dz_s = np.where(ok, dz, np.nan)
+    t = (z_g - o_rack[2]) / dz_s
+    X = o_rack[None, :] + t[:, None] * d_rack
+    X[~(t > 0)] = np.nan
+    return X, d_rack / dz_s[:, None]
+
+
+def ground_rows(
+    T_rack_cam: FloatArray, camera: PinholeCamera, X: FloatArray, dX_dz: FloatArray, uv: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Rows (2K, 7) and residuals (2K,) of ground points X (K, 3) measured at pixels uv (K, 2).
+
+    Columns: the pose twist (right perturbation, cam frame, as `pose_jacobian`) and z_g; the
+    residual is measured minus predicted pixel (px), the rows its first-order change. Points
+    with a NaN position (their ray misses the plane) or behind the camera get zero rows.
+    """
+    R = T_rack_cam[:3, :3]
+    k = X.shape[0]
+    A = np.zeros((2 * k, 7))
+    r = np.zeros((k, 2))
+    # Points whose ray misses the plane (NaN) or that are behind the camera give zero rows.
+    p_cam = (np.where(np.isfinite(X), X, 0.0) - T_rack_cam[:3, 3]) @ R
+    ok = np.all(np.isfinite(X), axis=1) & (p_cam[:, 2] > 1e-3)
+    if np.any(ok):
+        uv_hat, J = camera.project_with_jacobian(p_cam[ok])
+        rows = A.reshape(k, 2, 7)
+        rows[ok, :, :6] = pose_jacobian(J, p_cam[ok])
+        rows[ok, :, 6] = np.einsum("nij,nj->ni", J, dX_dz[ok] @ R)
+        r[ok] = uv[ok] - uv_hat
+    return A, r.reshape(-1)
+
+
+def detect_ground_points(
+    gray: np.ndarray[Any, np.dtype[np.uint8]],
+    pipe_polygons: list[FloatArray],
+    existing_uv: FloatArray,
+    max_new: int,
+    min_distance_px: float,
+    margin_px: float,
+    min_corner_ratio: float,
+) -> FloatArray:
+    """Corners (J, 2) outside the pipes' image regions (grown by `margin_px`) and the image border.
+
+    A corner's minimum structure-tensor eigenvalue must reach `min_corner_ratio` times the median
+    over the searched region (its noise floor).
+    """
+    h, w = gray.shape[:2]
+    if max_new <= 0:
+        return np.zeros((0, 2))
+    mask = np.zeros((h, w), dtype=np.uint8)
+    b = int(margin_px) + 4
+    mask[b : h - b, b : w - b] = 255
+    grow = max(round(2 * margin_px), 1)
+    for poly in pipe_polygons:
+        cv2.fillConvexPoly(mask, np.rint(poly).astype(np.int32), 0)
+        cv2.polylines(mask, [np.rint(poly).astype(np.int32)], True, 0, grow)
+    for q in existing_uv:
+        cv2.circle(mask, (round(q[0]), round(q[1])), int(min_distance_px), 0, -1)
+    if not np.any(mask):
+        return np.zeros((0, 2))
+    corners = cv2.goodFeaturesToTrack(gray, maxCorners=int(2 * max_new), qualityLevel=0.01,
+                                      minDistance=float(min_distance_px), mask=mask, blockSize=7)
+    if corners is None:
+        return np.zeros((0, 2))
+    uv = corners.reshape(-1, 2).astype(np.float64)
+    if min_corner_ratio > 0:
+        ev = np.asarray(cv2.cornerMinEigenVal(gray, 7, ksize=3))
+        floor = float(np.median(ev[mask > 0]))
+        c = np.rint(uv).astype(np.intp)
+        uv = uv[ev[np.clip(c[:, 1], 0, h - 1), np.clip(c[:, 0], 0, w - 1)] >= min_corner_ratio * floor]
+    return uv[:max_new]

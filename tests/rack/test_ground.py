@@ -1,0 +1,53 @@
+"""Ground-plane reference: rows against numeric differences; plane intersection; detection outside the pipes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.geometry import se3, so3
+from companion.vision.rack.ground import detect_ground_points, ground_rows, plane_points
+from tests.numdiff import central_jacobian
+
+CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def test_plane_points_lie_on_the_plane_and_on_their_rays(rng: np.random.Generator) -> None:
+    o = np.array([0.5, 4.0, 2.4])
+    d = CAM.unproject(rng.uniform([0, 0], [719, 479], (20, 2))) @ (so3.exp([0.05, -0.03, 0.2]) @ R_DOWN).T
+    X, dX = plane_points(o, d, -2.0)
+    np.testing.assert_allclose(X[:, 2], -2.0, atol=1e-12)
+    np.testing.assert_allclose(np.cross(X - o, d), 0.0, atol=1e-12)
+    X2, _ = plane_points(o, d, -2.0 + 1e-6)
+    np.testing.assert_allclose((X2 - X) / 1e-6, dX, rtol=1e-5)
+    up = plane_points(o, -d, -2.0)[0]  # rays pointing up never reach the ground
+    assert np.all(np.isnan(up))
+
+
+def test_ground_rows_match_central_differences(rng: np.random.Generator) -> None:
+    T = se3.make(so3.exp(rng.normal(0, 0.05, 3)) @ R_DOWN, [0.6, 4.0, 2.3])
+    T_prev = T @ se3.exp(rng.normal(0, 0.02, 6))
+    uv_prev = rng.uniform([50, 50], [670, 430], (6, 2))
+    d = CAM.unproject(uv_prev) @ T_prev[:3, :3].T
+    uv_meas = rng.uniform([50, 50], [670, 430], (6, 2))
+    z0 = -2.1
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        X, dX = plane_points(T_prev[:3, 3], d, z0 + p[6])
+        return ground_rows(T @ se3.exp(p[:6]), CAM, X, dX, uv_meas)[1]
+
+    X, dX = plane_points(T_prev[:3, 3], d, z0)
+    A, r = ground_rows(T, CAM, X, dX, uv_meas)
+    np.testing.assert_allclose(r, residual(np.zeros(7)))
+    # r = measured - predicted, so dr/dp = -(d predicted / dp) = -A.
+    np.testing.assert_allclose(-A, central_jacobian(residual, np.zeros(7)), rtol=1e-5, atol=1e-4)
+
+
+def test_ground_corners_are_found_outside_the_pipes_only(rng: np.random.Generator) -> None:
+    gray = np.clip(120 + 40 * rng.standard_normal((240, 360)), 0, 255).astype(np.uint8)
+    pipe = np.array([[100.0, 0.0], [180.0, 0.0], [180.0, 239.0], [100.0, 239.0]])
+    uv = detect_ground_points(gray, [pipe], np.zeros((0, 2)), 50, 8.0, 6.0, 0.0)
+    assert uv.shape[0] == 50
+    assert not np.any((uv[:, 0] > 100 - 6) & (uv[:, 0] < 180 + 6))  # the pipe and a 6 px margin around it
+    assert np.all((uv >= 10) & (uv <= np.array([349, 229])))
