@@ -105,7 +105,7 @@ class RackTrackerConfig:
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
     edge_profile_px: int = 8
-    ground_points: int = 60
+    ground_points: int = 0
     ground_weight: float = 1.0
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
