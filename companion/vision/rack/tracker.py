@@ -238,6 +238,7 @@ class RackTracker:
         self._frames = 0
         self._initialized = False
         self._since_detect = 0
+        self._detect_short = False
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
         self._weights_cache: dict[tuple[bool, int], tuple[FloatArray, FloatArray]] = {}
@@ -277,6 +278,7 @@ class RackTracker:
         self._frames = 0
         self._initialized = False
         self._since_detect = 0
+        self._detect_short = False
 
     @property
     def T_rack_cam(self) -> FloatArray:
@@ -872,7 +874,9 @@ class RackTracker:
         need = cfg.max_texture_points - len(tm)
         if need <= 0 or (len(tm) and need < max(3, cfg.max_texture_points // 5)):
             return
-        if self._since_detect < cfg.detect_every and len(tm) >= 0.6 * cfg.max_texture_points:
+        # Wait detect_every frames between detections when the map is well filled, or when the last
+        # detection found fewer points than asked (sparse spots: detecting every frame finds nothing new).
+        if self._since_detect < cfg.detect_every and (len(tm) >= 0.6 * cfg.max_texture_points or self._detect_short):
             return
         self._since_detect = 0
         polys = self._pipe_polygons(samples)
@@ -880,5 +884,6 @@ class RackTracker:
             gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
             cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
         )
+        self._detect_short = new_pipe.size < need
         if new_pipe.size:
             tm.add(new_pipe, new_off, new_uv, sample_patches(img_f, new_uv, half_ref), T)
