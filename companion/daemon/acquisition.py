@@ -2,12 +2,13 @@
 
 The start pose the daemon is given (`DaemonOptions.initial_T_ned_body`, the mission's start) is a
 hint, not a survey: the tracker starts from it, and when it does not lock within
-`lock_frames` frames -- or loses the rack later for `lost_frames` frames in a row -- the daemon
-runs `companion.vision.rack.acquire_rack` on each frame until one gives a confident pose, resets the
-tracker there and goes on tracking. The prior comes from the vehicle: roll and pitch from the
-autopilot, the camera's height above the rack's support plane, the along-pipe position and
-heading of the filter's estimate (or the hint) with generous standard deviations. A wrong lock
-is worse than none: only confident results are taken.
+`lock_frames` frames -- or loses the rack later for `lost_frames` frames in a row (2 s at 15 Hz,
+while the daemon's re-seeds from the filter have not brought it back) -- the daemon also runs
+`companion.vision.rack.acquire_rack` on each frame until one gives a confident pose, resets the
+tracker there and goes on tracking; the tracker itself keeps running meanwhile. The prior comes
+from the vehicle: roll and pitch from the autopilot, the camera's height above the rack's support
+plane, the along-pipe position and heading of the filter's estimate (or the hint) with generous
+standard deviations. A wrong lock is worse than none: only confident results are taken.
 
 Runs in the vision worker, like the trackers (no I/O, no clock).
 """
@@ -46,7 +47,7 @@ class RackAcquirer:
     """Lock state of the rack tracker and the acquisition attempts (see the module docstring)."""
 
     def __init__(self, model: Any, camera: Any, T_body_cam: FloatArray, T_ned_rack: FloatArray, *,
-                 lock_frames: int = 10, lost_frames: int = 15, config: Any | None = None) -> None:
+                 lock_frames: int = 30, lost_frames: int = 30, config: Any | None = None) -> None:
         from companion.vision.rack import AcquisitionConfig
 
         self.model = model
@@ -68,6 +69,7 @@ class RackAcquirer:
         """Update the lock state with the tracker's verdict on this frame."""
         if ok:
             self.locked = True
+            self.acquiring = False
             self.bad_frames = 0
             return
         self.bad_frames += 1

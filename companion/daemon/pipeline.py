@@ -162,7 +162,9 @@ class VisionPipeline:
             if T_rack_cam is not None:
                 self.rack_tracker.reset(T_rack_cam)
                 acquired = True
-        if self.rack_tracker is not None and not (acq is not None and acq.acquiring):
+        if self.rack_tracker is not None:
+            # the tracker keeps running while acquiring: the daemon's re-seed from the filter stays the first
+            # way back (it works where acquisition cannot, e.g. on the deck right over the pipes)
             rack = self.rack_tracker.track(image, stamp_s)
             if acq is not None:
                 acq.after_track(bool(rack.ok))
