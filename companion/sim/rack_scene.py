@@ -37,6 +37,27 @@ def _rotate(rays: np.ndarray[Any, Any], R: np.ndarray[Any, Any]) -> np.ndarray[A
     return np.asarray(cv2.transform(r, np.asarray(R, dtype=np.float32)), dtype=np.float32).reshape(-1, 3)
 
 
+def supersample_silhouettes(img: Any, ids: Any, camera: PinholeCamera, R: Any, shade: Any, k: int) -> None:
+    """Anti-alias in place: pixels where a neighbour sees another surface (`ids` differ) become the mean of
+    k x k sub-pixel rays; `shade(rays_rack)` returns their grey levels, `R` rotates camera rays to the rack."""
+    H, W = ids.shape
+    edge = np.zeros((H, W), dtype=bool)
+    dif_x = ids[:, 1:] != ids[:, :-1]
+    dif_y = ids[1:, :] != ids[:-1, :]
+    edge[:, 1:] |= dif_x
+    edge[:, :-1] |= dif_x
+    edge[1:, :] |= dif_y
+    edge[:-1, :] |= dif_y
+    vv, uu = np.nonzero(edge)
+    if vv.size == 0:
+        return
+    off = (np.arange(k) + 0.5) / k - 0.5
+    ox, oy = np.meshgrid(off, off)
+    uv = np.stack([uu[:, None] + ox.ravel()[None, :], vv[:, None] + oy.ravel()[None, :]], axis=-1)
+    rays = _rotate(camera.unproject(uv.reshape(-1, 2)).astype(np.float32), R)
+    img[vv, uu] = np.asarray(shade(rays)).reshape(-1, k * k).mean(axis=1)
+
+
 @dataclass(frozen=True)
 class RackSceneConfig:
     """Appearance of the synthetic scene.
@@ -293,23 +314,8 @@ class RackScene:
         H, W = camera.height, camera.width
         img = out.reshape(H, W)
         if antialias > 1:
-            idm = ids.reshape(H, W)
-            edge = np.zeros((H, W), dtype=bool)
-            dif_x = idm[:, 1:] != idm[:, :-1]
-            dif_y = idm[1:, :] != idm[:-1, :]
-            edge[:, 1:] |= dif_x
-            edge[:, :-1] |= dif_x
-            edge[1:, :] |= dif_y
-            edge[:-1, :] |= dif_y
-            vv, uu = np.nonzero(edge)
-            if vv.size:
-                k = int(antialias)
-                off = (np.arange(k) + 0.5) / k - 0.5
-                ox, oy = np.meshgrid(off, off)
-                uv = np.stack([uu[:, None] + ox.ravel()[None, :], vv[:, None] + oy.ravel()[None, :]], axis=-1)
-                rays = _rotate(camera.unproject(uv.reshape(-1, 2)).astype(np.float32), R)
-                sub, _ = self._shade(o, rays)
-                img[vv, uu] = sub.reshape(-1, k * k).mean(axis=1)
+            supersample_silhouettes(img, ids.reshape(H, W), camera, R, lambda rays: self._shade(o, rays)[0],
+                                    int(antialias))
         return img
 
     def render(

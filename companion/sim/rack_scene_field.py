@@ -34,7 +34,7 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError
-from companion.sim.rack_scene import _lookup, _rotate, _smooth_noise
+from companion.sim.rack_scene import _lookup, _rotate, _smooth_noise, supersample_silhouettes
 from companion.vision.rack.model import RackModel
 
 GROUND_KINDS = ("grating", "concrete", "natural")
@@ -372,22 +372,8 @@ class FieldRackScene:
         H, W = camera.height, camera.width
         img = out.reshape(H, W)
         if antialias > 1:
-            idm = ids.reshape(H, W)
-            edge = np.zeros((H, W), dtype=bool)
-            dx = idm[:, 1:] != idm[:, :-1]
-            dy = idm[1:, :] != idm[:-1, :]
-            edge[:, 1:] |= dx
-            edge[:, :-1] |= dx
-            edge[1:, :] |= dy
-            edge[:-1, :] |= dy
-            vv, uu = np.nonzero(edge)
-            if vv.size:
-                off = (np.arange(antialias) + 0.5) / antialias - 0.5
-                ox, oy = np.meshgrid(off, off)
-                uv = np.stack([uu[:, None] + ox.ravel()[None, :], vv[:, None] + oy.ravel()[None, :]], axis=-1)
-                rays = _rotate(camera.unproject(uv.reshape(-1, 2)).astype(np.float32), R)
-                sub, _ = self._shade(o, rays)
-                img[vv, uu] = sub.reshape(-1, antialias * antialias).mean(axis=1)
+            supersample_silhouettes(img, ids.reshape(H, W), camera, R, lambda rays: self._shade(o, rays)[0],
+                                    int(antialias))
         return img
 
     def image_motion_px(self, T_rack_cam: Any, T_rack_cam_end: Any, camera: PinholeCamera) -> tuple[float, float]:
