@@ -95,7 +95,8 @@ def test_the_deploy_checklist_against_the_fake_autopilot(rehearsal: tuple[Path, 
     # 1. check-config passes; status: camera streaming, estimator ok with the rack in view, autopilot heard
     ok = _companion("check-config", "systemd/rehearsal.toml", cwd=cwd)
     assert ok.returncode == 0, ok.stdout + ok.stderr
-    st = _wait(lambda: (s := _status(cwd, api)) and s["estimator"]["ok"] and s, 30.0, "estimator ok")
+    st = _wait(lambda: (s := _status(cwd, api)) and s["estimator"]["ok"]
+               and s["estimator"]["capture_to_send_ms_p50"] is not None and s, 30.0, "estimator ok, poses sent")
     assert st["camera"]["state"] == "streaming" and st["link"]["health"] == "autopilot-ok"
     assert st["link"]["autopilot"] == "ardupilot" and st["estimator"]["source"] == "rack"
     assert st["estimator"]["capture_to_send_ms_p50"] is not None

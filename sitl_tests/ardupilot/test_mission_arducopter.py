@@ -60,10 +60,13 @@ async def test_paper_sweep_on_arducopter(sitl_available: Path, tmp_path: Path) -
             assert time.monotonic() - t_mission < 300.0, f"mission still {ex.state} after 300 s"
             if t_armed is None and ob.armed:
                 t_armed = time.monotonic() - t_mission
-            truth = rig.truth_position()
             for r in ex.results[seen:]:
                 if r.result == "succeeded" and r.T_ned_body_goal is not None and r.action in (
                         "takeoff", "gotoxy", "gotoz", "servo", "home"):
+                    # the truth when the daemon declared the waypoint reached (its clock is time.monotonic, the
+                    # observer's too), not when this loop noticed: the next action may already move the vehicle
+                    t_truth, p_truth = ob.truth_track(r.ended_s - 1.0)
+                    truth = np.array([np.interp(r.ended_s, t_truth, p_truth[:, k]) for k in range(3)])
                     err = float(np.linalg.norm(truth - np.asarray(r.T_ned_body_goal)[:3, 3]))
                     waypoint_errors.append((r.action_id, err))
             seen = len(ex.results)
