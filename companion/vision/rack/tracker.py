@@ -136,7 +136,7 @@ class RackTrackerConfig:
     edge_bias_rate_px: float = 0.02
     velocity_prediction: bool = True
     max_texture_points: int = 50
-    texture_weight: float = 20.0
+    texture_weight: float = 2.0
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
