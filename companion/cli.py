@@ -71,8 +71,8 @@ def _fail(message: str, code: int) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
     from companion.sim.ground_station import ground_station_overrides
+    from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
 
     faults = [parse_fault_spec(spec) for spec in args.fault]
     _setup_logging(args.verbose)
