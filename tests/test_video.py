@@ -128,3 +128,16 @@ def test_video_size_from_camera_and_scale() -> None:
     tiny = parse_config({"camera": {"width": 100, "height": 60}, "video": {"scale": 0.1}})
     with pytest.raises(ConfigError, match=r"^video\.scale: the stream would be 10x6 px"):
         video_frame_size(tiny.video, tiny.camera)
+
+
+def test_sim_command_line_turns_the_ground_station_on() -> None:
+    from companion.cli import build_parser
+    from companion.sim.ground_station import ground_station_overrides
+
+    args = build_parser().parse_args(["sim", "--api-port", "0", "--video-port", "5602"])
+    ov = ground_station_overrides(args)
+    assert ov["video"]["enabled"] and ov["video"]["port"] == 5602 and ov["api"]["enabled"]
+    assert ov["api"]["bind"] == "127.0.0.1" and ov["api"]["port"] == 0
+    off = ground_station_overrides(build_parser().parse_args(["sim", "--no-video"]))
+    assert not off["video"]["enabled"] and off["api"]["port"] == 8765
+    parse_config(off)  # the overrides are a valid configuration

@@ -47,9 +47,9 @@ class H264Encoder:
         ctx.time_base = Fraction(1, rate)
         ctx.framerate = Fraction(rate, 1)
         ctx.bit_rate = int(bitrate_kbps) * 1000
-        ctx.gop_size = max(1, round(keyframe_interval_s * fps))
-        ctx.thread_count = int(threads)
         gop = max(1, round(keyframe_interval_s * fps))
+        ctx.gop_size = gop
+        ctx.thread_count = int(threads)  # one thread: slices in parallel would add latency and compete with vision
         ctx.options = {
             "preset": "ultrafast",
             "tune": "zerolatency",
