@@ -83,7 +83,18 @@ def _drive(url: str, upload: Path, screenshot: str | None) -> dict[str, Any]:
         seen["good_upload"] = el(By.ID, "message").text
         item = wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#missions li[data-id='page_hop']"))
         seen["listed"] = [li.get_attribute("data-id") for li in driver.find_elements(By.CSS_SELECTOR, "#missions li")]
-        item.find_element(By.CSS_SELECTOR, "button.start").click()
+        # like an operator: a start refused for a stale pose (a loaded machine starves the camera for a moment)
+        # is clicked again
+        seen["start_clicks"] = 0
+        for _ in range(5):
+            driver.execute_script("document.getElementById('message').textContent = ''")
+            item.find_element(By.CSS_SELECTOR, "button.start").click()
+            seen["start_clicks"] += 1
+            wait.until(lambda d: "started" in el(By.ID, "message").text or "refused" in el(By.ID, "message").text)
+            if "started" in el(By.ID, "message").text:
+                break
+            seen.setdefault("start_refusals", []).append(el(By.ID, "message").text)
+            time.sleep(1.0)
         wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#mission-steps li")) == 3)
         WebDriverWait(driver, 40, poll_frequency=0.3).until(
             lambda d: int(el(By.ID, "mission-progress").get_attribute("data-done") or 0) >= 1)

@@ -123,6 +123,7 @@ async def test_stream_and_page_survive_camera_loss_and_leaving_clients(tmp_path:
         await asyncio.sleep(1.5)
         idle_during = rig.daemon.video_streamer.stats().idle_frames
         camera_during = rig.daemon.status()["camera"]["state"]
+        alert_during = rig.daemon.video_streamer.idle_alert
         await asyncio.sleep(3.5)
         t_back = t_unplug + 2.0
         # the RTP receiver leaves and a new one joins mid-stream
@@ -138,6 +139,7 @@ async def test_stream_and_page_survive_camera_loss_and_leaving_clients(tmp_path:
         page = rig.daemon.page_state()
     assert rx.error is None and rx2.error is None, (rx.error, rx2.error)
     assert camera_during == "lost"
+    assert alert_during == "CAMERA LOST"
     assert idle_during >= 1, "no 'no camera' frames while the camera was gone"
     # live frames again after the camera came back: fresh capture stamps, decoded by the first receiver
     fresh = [f for f in rx.frames if f.stamp_ms is not None and f.stamp_ms / 1000.0 > t_back + 0.3]

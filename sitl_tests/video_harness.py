@@ -54,6 +54,7 @@ class RtpReceiver:
     keep_images: int = 0
     frames: list[DecodedFrame] = field(default_factory=list)
     error: BaseException | None = None
+    decode_errors: int = 0
     _stop: threading.Event = field(default_factory=threading.Event)
     _thread: threading.Thread | None = None
     _opened: threading.Event = field(default_factory=threading.Event)
@@ -73,7 +74,12 @@ class RtpReceiver:
             with av.open(str(self.sdp_path), format="sdp", options=opts, timeout=(10.0, 2.0)) as container:
                 stream = container.streams.video[0]
                 for packet in container.demux(stream):
-                    for frame in packet.decode():
+                    try:
+                        decoded = packet.decode()
+                    except av.error.InvalidDataError:  # joined mid-stream: P-frames before the next key frame
+                        self.decode_errors += 1
+                        continue
+                    for frame in decoded:
                         img = frame.to_ndarray(format="bgr24")
                         now = time.monotonic()
                         keep = img if len(self.frames) < self.keep_images else None

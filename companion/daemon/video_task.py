@@ -77,6 +77,10 @@ class VideoTask(DaemonState):
         self._video_model = self.pipeline.rack_tracker.model if (
             self.pipeline is not None and self.pipeline.rack_tracker is not None) else self._video_rack_model()
         self.frame_observers.append(self._video_on_frame)
+        cam = self.camera
+        if hasattr(cam, "on_lost"):
+            cam.on_lost(self._video_camera_lost)
+            cam.on_recovered(self._video_camera_recovered)
         if self.link is not None:
             self._unsubscribe.append(self.link.on_message(self._video_on_message))
             self._camera_heartbeat = asyncio.get_running_loop().create_task(self._camera_heartbeat_loop(),
@@ -89,6 +93,14 @@ class VideoTask(DaemonState):
         from drivers.api.page import StatusPage
 
         return StatusPage(state_provider=self.page_state, streamer=self.video_streamer)
+
+    def _video_camera_lost(self, reason: str) -> None:
+        if self.video_streamer is not None:
+            self.video_streamer.idle_alert = "CAMERA LOST"
+
+    def _video_camera_recovered(self) -> None:
+        if self.video_streamer is not None:
+            self.video_streamer.idle_alert = "NO NEW FRAMES"
 
     def _video_rack_model(self) -> Any | None:
         path = self.config.rack.model

@@ -5,7 +5,8 @@ the thread has not taken yet is replaced by the newer one and counted as dropped
 a slow encoder lowers the frame rate, never raises the latency). The thread keeps at most `fps`
 frames a second, draws the overlay (`drivers.video.overlay`), optionally the capture-time stamp
 block, encodes H.264 and sends RTP. When frames stop (camera unplugged) it sends the last picture,
-darkened, with "NO CAMERA FRAMES" at `idle_fps`, so the ground station sees why; when frames come
+darkened, with `idle_alert` ("NO NEW FRAMES", or what the daemon sets: "CAMERA LOST") at `idle_fps`, so the
+ground station sees why; when frames come
 back the stream goes on with the same encoder (no new SPS needed by the receiver).
 
 For the web page it also keeps the latest frame as JPEG, encoded only while someone asked for it in
@@ -97,6 +98,9 @@ class VideoStreamer:
         self._last_job: FrameJob | None = None
         self._last_frame_s = -1e9  # monotonic time the last real frame arrived
         self._next_due_s = -1e9
+        # the warning on the repeated picture while no frames come; the daemon says "CAMERA LOST" when its camera
+        # driver reports it (a slow vision worker also starves the stream, without the camera being gone)
+        self.idle_alert = "NO NEW FRAMES"
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -172,7 +176,7 @@ class VideoStreamer:
             if job is None:
                 last = self._last_job
                 if last is not None and now - self._last_frame_s >= self.idle_after_s:
-                    idle = replace(last, capture_mono_s=now, overlay=replace(last.overlay, alert="NO CAMERA FRAMES"))
+                    idle = replace(last, capture_mono_s=now, overlay=replace(last.overlay, alert=self.idle_alert))
                     self._counts["idle_frames"] += 1
                     self._emit(idle, now, dim=True)
                 continue
