@@ -78,7 +78,7 @@ class VideoTask(DaemonState):
             self.pipeline is not None and self.pipeline.rack_tracker is not None) else self._video_rack_model()
         self.frame_observers.append(self._video_on_frame)
         cam = self.camera
-        if hasattr(cam, "on_lost"):
+        if cam is not None and hasattr(cam, "on_lost"):
             cam.on_lost(self._video_camera_lost)
             cam.on_recovered(self._video_camera_recovered)
         if self.link is not None:
