@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import re
+import socket
 import struct
 
 import numpy as np
@@ -141,3 +142,35 @@ def test_sim_command_line_turns_the_ground_station_on() -> None:
     off = ground_station_overrides(build_parser().parse_args(["sim", "--no-video"]))
     assert not off["video"]["enabled"] and off["api"]["port"] == 8765
     parse_config(off)  # the overrides are a valid configuration
+
+
+def test_streamer_mailbox_keeps_only_the_newest_frame() -> None:
+    """Frames the encoder has not taken yet are replaced (dropped), never queued: the newest one is sent."""
+    import threading
+
+    import cv2
+
+    pytest.importorskip("av")
+    from drivers.video import Overlay
+    from drivers.video.streamer import FrameJob, VideoStreamer
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sink:
+        sink.bind(("127.0.0.1", 0))
+        streamer = VideoStreamer(size=(160, 120), fps=30.0, bitrate_kbps=300, host="127.0.0.1",
+                                 port=sink.getsockname()[1], camera=None)
+        got: list[bytes] = []
+        done = threading.Event()
+        streamer.add_jpeg_listener(lambda seq, jpeg: (got.append(jpeg), done.set()))
+        streamer.want_jpeg()
+        for k in range(10):  # the thread is not running yet: each one replaces the one before
+            streamer.submit(FrameJob(np.full((120, 160), 20 * k, np.uint8), float(k), Overlay()))
+        streamer.start()
+        try:
+            assert done.wait(10.0)
+        finally:
+            streamer.stop()
+    st = streamer.stats()
+    assert (st.submitted, st.dropped, st.encoded - st.idle_frames) == (10, 9, 1)
+    img = cv2.imdecode(np.frombuffer(got[0], np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert abs(float(img.mean()) - 180.0) < 3.0  # the 10th frame (20 * 9), not an older one
+    assert st.bytes_sent > 0
