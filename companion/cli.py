@@ -71,6 +71,7 @@ def _fail(message: str, code: int) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from companion.sim.ground_station import ground_station_overrides
     from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
 
     faults = [parse_fault_spec(spec) for spec in args.fault]
@@ -85,6 +86,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         seed=int(args.seed),
         wind=not args.no_wind,
         speed=float(args.speed),
+        config_overrides=ground_station_overrides(args),
     )
     return run_sim_cli(options)
 
@@ -217,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=float, default=1.0,
                    help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")
+    from companion.sim.ground_station import add_ground_station_arguments
+
+    add_ground_station_arguments(p)  # --no-video, --video-port, --api-port, --token-file
     p.set_defaults(handler=_cmd_sim)
 
     p = sub.add_parser("fake-autopilot", help="the simulator's autopilot on its own (real time)", add_help=False)

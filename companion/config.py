@@ -488,6 +488,40 @@ def is_loopback_address(host: str) -> bool:
         return False
 
 
+def _even(v: Any) -> str | None:
+    return None if v % 2 == 0 else f"must be even (H.264 4:2:0), got {v}"
+
+
+@dataclass(frozen=True)
+class VideoConfig(_Section):
+    """Video to the ground station (H.264 over RTP/UDP, QGroundControl's default port) and the status page's image.
+
+    width/height 0: the camera's size times `scale`; `fps` caps the stream (newer frames replace older ones
+    while the encoder is busy: frames are dropped, never queued); `stamp` draws the capture time as a block
+    code in the top-left corner (latency measurements)."""
+
+    SECTION: ClassVar[str] = "video"
+    enabled: bool = False
+    host: str = field(default="127.0.0.1", metadata=_check(_nonempty))
+    port: int = field(default=5600, metadata=_check(_between(1, 65535)))
+    width: int = field(default=0, metadata=_check(_between(0, 4096), _even))
+    height: int = field(default=0, metadata=_check(_between(0, 4096), _even))
+    scale: float = field(default=1.0, metadata=_check(_gt(0), _between(0, 4)))
+    fps: float = field(default=15.0, metadata=_check(_gt(0), _between(0, 60)))
+    bitrate_kbps: int = field(default=1500, metadata=_check(_between(50, 50000)))
+    keyframe_interval_s: float = field(default=1.0, metadata=_check(_gt(0)))
+    stamp: bool = False
+    mjpeg_fps: float = field(default=10.0, metadata=_check(_gt(0), _between(0, 60)))
+    jpeg_quality: int = field(default=70, metadata=_check(_between(10, 100)))
+    sdp_path: str = ""  # where the SDP file for VLC / ffplay goes ("": the flight folder's stream.sdp)
+    camera_component_id: int = field(default=100, metadata=_check(_between(100, 105)))  # MAV_COMP_ID_CAMERA..6
+
+    def _cross_check(self) -> None:
+        if (self.width == 0) != (self.height == 0):
+            raise self._fail("height" if self.height == 0 else "width", "video.width and video.height go together "
+                             "(both 0: the camera's size times video.scale)")
+
+
 @dataclass(frozen=True)
 class LoggingConfig(_Section):
     """Flight folders and log level."""
@@ -513,6 +547,7 @@ class CompanionConfig:
     safety: SafetyLimits = field(default_factory=SafetyLimits)
     mission: MissionConfig = field(default_factory=MissionConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
+    video: VideoConfig = field(default_factory=VideoConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
 
 

@@ -24,7 +24,7 @@ import stat
 from pathlib import Path
 
 from companion.camera import PinholeCamera
-from companion.config import ApiConfig, CameraConfig, CompanionConfig, is_loopback_address
+from companion.config import ApiConfig, CameraConfig, CompanionConfig, VideoConfig, is_loopback_address
 from companion.errors import CameraError, CompanionError, ConfigError, InputError
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "default_camera_model",
     "read_token_file",
     "validate_for_run",
+    "video_frame_size",
 ]
 
 # DESIGN's example camera: 720x480 px with fx = fy = 630 px; other sizes scale it.
@@ -59,6 +60,22 @@ def validate_for_run(config: CompanionConfig) -> None:
         api_token(config.api)
         _check_dir_writable("mission.upload_folder", config.mission.upload_folder)
     _check_dir_writable("mission.photo_folder", config.mission.photo_folder)
+    if config.video.enabled:
+        video_frame_size(config.video, config.camera)
+
+
+def video_frame_size(video: VideoConfig, camera: CameraConfig) -> tuple[int, int]:
+    """The streamed (width, height) in px: `video.width` x `video.height`, or the camera's size times
+    `video.scale` rounded down to even numbers (H.264 4:2:0); `ConfigError` naming the key if too small."""
+    if video.width > 0:
+        w, h = video.width, video.height
+    else:
+        w = int(camera.width * video.scale) // 2 * 2
+        h = int(camera.height * video.scale) // 2 * 2
+    if w < 16 or h < 16:
+        key = "video.width" if video.width > 0 else "video.scale"
+        raise ConfigError(f"{key}: the stream would be {w}x{h} px; at least 16x16 px is needed")
+    return w, h
 
 
 # --------------------------------------------------------------------------- camera

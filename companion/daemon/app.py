@@ -42,7 +42,9 @@ from companion.daemon.health import HealthTask
 from companion.daemon.imu_task import ImuTask
 from companion.daemon.missions import Missions
 from companion.daemon.options import DaemonOptions
+from companion.daemon.page_state import PageState
 from companion.daemon.state import FrameRecord
+from companion.daemon.video_task import VideoTask
 from companion.daemon.vision_task import VisionTask
 from companion.daemon.watchdog import SafetyWatchdog
 from companion.daemon.wiring import Wiring
@@ -53,7 +55,7 @@ __all__ = ["Daemon", "DaemonOptions", "FrameRecord", "run_daemon"]
 _log = logging.getLogger("companion.daemon")
 
 
-class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog, HealthTask):
+class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog, HealthTask, VideoTask, PageState):
     """The companion daemon (an async context manager; see the module docstring)."""
 
     # ================================================================ lifecycle
@@ -87,6 +89,8 @@ class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog,
             await self._open_link()
             await self._open_camera()
             self._build_pipeline()
+            self._open_page_state()
+            await self._open_video()  # video.enabled: overlay stream to the GCS (video_task)
             if self.options.api and cfg.api.enabled:
                 await self._open_api()
         except BaseException:
@@ -199,6 +203,7 @@ class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog,
             with contextlib.suppress(Exception):
                 await self.api_server.__aexit__(None, None, None)
             self.api_server = None
+        self._close_video()
         if self.camera is not None and self.options.camera_source is None:
             with contextlib.suppress(Exception):
                 await self.camera.__aexit__(None, None, None)
@@ -224,7 +229,7 @@ class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog,
         cfg = self.config
         server = ApiServer(cfg.api, store_dir=cfg.mission.upload_folder,
                            validate=default_validator(self.mission_limits), controller=ApiController(self),
-                           status_provider=self.status)
+                           status_provider=self.status, page=self._status_page())
         await server.__aenter__()
         self.api_server = server
         self._event("api-listening", url=server.url)

@@ -214,7 +214,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
         base_render(ap.truth.T_ned_body)  # warm the renderer's caches before the camera's clock runs
         render = FaultyRender(base_render, clock.now)
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
-            render=render, api=False, sdnotify=False, initial_T_ned_body=ap.truth.T_ned_body,
+            render=render, api=bool(config.api.enabled), sdnotify=False, initial_T_ned_body=ap.truth.T_ned_body,
             flight_root=out_dir / "flights", visual_ground_z_ned_m=_visual_ground_z(config, base_render),
             rack_along_pipe_std_m=options.rack_along_pipe_std_m,
         ))
@@ -224,6 +224,9 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
             link = daemon.link
             assert link is not None
             await link.wait_autopilot(10.0)
+            from companion.sim.ground_station import announce
+
+            announce(daemon, out)  # the status page and the video, when configured (companion sim does)
             # like an operator: wait until poses flow and the autopilot's EKF accepts them
             # (ArduCopter's EKF aligns on the vision poses for ~12 s before it may arm: the fake does the same)
             t_wait = clock.now() + 30.0

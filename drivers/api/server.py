@@ -12,6 +12,9 @@ Routes (JSON in and out; errors are `{"error": "..."}`):
     POST   /api/v1/missions/{id}/start|pause|resume|abort   controller(id)     200 / 404 / 409
     POST   /api/v1/mission/pause|resume|abort     controller(None): the active mission
 
+With a `StatusPage` (`drivers.api.page`): the web status page under /page/ (public static files) and its
+data routes /api/v1/page/state, /api/v1/video.mjpeg, /api/v1/video.jpg (token rules as above).
+
 Binds 127.0.0.1 by default. With a token file every request needs
 `Authorization: Bearer <token>` (401 otherwise); binding any non-loopback
 address without a token file is refused at start (`ConfigError`).
@@ -35,6 +38,7 @@ from companion.config import ApiConfig
 from companion.config_checks import api_token
 from companion.config_checks import read_token_file as read_token_file  # re-exported by drivers.api
 from companion.errors import CompanionError, ConfigError, MissionError
+from drivers.api.page import StatusPage
 from drivers.api.store import MissionStore, is_valid_id, mission_id_from_name
 
 _log = logging.getLogger(__name__)
@@ -115,6 +119,7 @@ class ApiServer:
         controller: MissionController,
         status_provider: StatusProvider,
         token: str | None = None,
+        page: StatusPage | None = None,
     ) -> None:
         self.config = config
         self.store = MissionStore(store_dir)
@@ -126,6 +131,7 @@ class ApiServer:
         self._runner: web.AppRunner | None = None
         self._port: int | None = None
         self._upload_lock = asyncio.Lock()
+        self.page = page  # the web status page (drivers.api.page), None: API only
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -170,6 +176,8 @@ class ApiServer:
         app.router.add_delete(f"{p}/missions/{{mission_id}}", self._delete)
         app.router.add_post(f"{p}/missions/{{mission_id}}/{{action}}", self._act)
         app.router.add_post(f"{p}/mission/{{action}}", self._act_active)
+        if self.page is not None:
+            self.page.add_routes(app, p)
         runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await runner.setup()
         site = web.TCPSite(runner, self.config.bind, self.config.port)
@@ -184,6 +192,8 @@ class ApiServer:
 
     async def stop(self) -> None:
         runner, self._runner = self._runner, None
+        if self.page is not None:
+            self.page.close()
         if runner is not None:
             await runner.cleanup()
         self._port = None
@@ -213,7 +223,7 @@ class ApiServer:
     async def _auth_middleware(
         self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
     ) -> web.StreamResponse:
-        if self._token is not None:
+        if self._token is not None and not (self.page is not None and self.page.is_public(request.path)):
             header = request.headers.get("Authorization", "")
             scheme, _, presented = header.partition(" ")
             if scheme.lower() != "bearer" or not hmac.compare_digest(presented.strip().encode(), self._token.encode()):

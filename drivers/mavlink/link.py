@@ -240,6 +240,7 @@ class MavLink:
             forced_profile=self._forced_profile,
         )
         self._encoder = Encoder(config.system_id or 1, config.component_id)
+        self._component_encoders: dict[int, Encoder] = {}  # other components of ours (the camera, send_as)
         self._parser = FrameParser(accept_mavlink1=config.accept_mavlink1)
         self._transport: Transport = make_transport(parse_url(config.url))
         self._forwards: list[tuple[Transport, FrameParser]] = [
@@ -596,6 +597,15 @@ class MavLink:
         for frame in self._encoder.statustext(text, int(severity), self._statustext_id):
             self._enqueue(frame, Priority.CONTROL, to_gcs=True)
 
+    def send_as(self, component_id: int, build: Callable[[Any], Any]) -> None:
+        """Send one message as another component of our system (e.g. MAV_COMP_ID_CAMERA), to the autopilot and
+        the GCS forwards. `build(mav)` returns the pymavlink message (``mav.heartbeat_encode(...)``)."""
+        enc = self._component_encoders.get(component_id)
+        if enc is None:
+            enc = self._component_encoders[component_id] = Encoder(self._encoder.system_id, component_id)
+        enc.system_id = self._encoder.system_id  # follows the autopilot's system id once heard
+        self._enqueue(enc.pack(build(enc.mav)), Priority.CONTROL, to_gcs=True)
+
     def named_value_float(self, name: str, value: float) -> None:
         """Send NAMED_VALUE_FLOAT (name cut to 10 ASCII characters)."""
         self._enqueue(self._encoder.named_value_float(self._boot_ms(), name, value), Priority.CONTROL, to_gcs=True)
@@ -848,6 +858,9 @@ class MavLink:
                 self._counts["forwarded_to_autopilot"] += 1
                 if msg.get_type() == "HEARTBEAT":
                     self._tracker.apply(msg, now)
+                elif msg.get_type() == "COMMAND_LONG":  # may be for one of our components (camera discovery)
+                    for mcb in list(self._message_callbacks):
+                        self._call(mcb, msg)
 
         return receive
 
