@@ -109,8 +109,7 @@ async def test_paper_sweep_on_arducopter(sitl_available: Path, tmp_path: Path) -
         }
         rig.say("paper_sweep on ArduCopter: " + json.dumps(figures))
         assert len(waypoint_errors) >= 10
-        # #17's bar is 10 cm. On this binary p1-end (pipe 1 at y = 8.5 m) came out at 7.7-11.2 cm over five
-        # runs while every other waypoint stays at 2-7 cm (the vision estimate there, not the autopilot;
-        # `companion sim --autopilot ardupilot-sitl` keeps every waypoint within 5.7 cm on 3 seeds). The test
-        # asserts 15 cm so that CI stays deterministic; the figure printed above is what to compare with 10 cm.
-        assert worst <= 0.15, waypoint_errors
+        # #17's bar: every waypoint within 10 cm of the truth. p1-end (pipe 1, y = 8.5 m, past the crossing pipe)
+        # was 7.7-11.2 cm with the tracker's texture weight 20 (texture points anchored with the pose error
+        # they were born with); with 2 it measures 3.6 cm (docs/rack.md).
+        assert worst <= 0.10, waypoint_errors
