@@ -72,8 +72,10 @@ def _fail(message: str, code: int) -> int:
 
 def _cmd_sim(args: argparse.Namespace) -> int:
     from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
+    from companion.sim.start_error import parse_start_error
 
     faults = [parse_fault_spec(spec) for spec in args.fault]
+    start_error = parse_start_error(args.start_error) if args.start_error is not None else None
     _setup_logging(args.verbose)
     options = SimOptions(
         mission_path=Path(args.mission) if args.mission else None,
@@ -85,6 +87,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         seed=int(args.seed),
         wind=not args.no_wind,
         speed=float(args.speed),
+        start_error=start_error,
+        seed_true_pose=bool(args.seed_true_pose),
     )
     return run_sim_cli(options)
 
@@ -216,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-wind", action="store_true", help="fly without Dryden wind")
     p.add_argument("--speed", type=float, default=1.0,
                    help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
+    p.add_argument("--start-error", metavar="M,DEG", default=None,
+                   help="boot the vehicle up to M metres and DEG degrees away from the configured start (seeded); "
+                   "the daemon must find the rack in the image")
+    p.add_argument("--seed-true-pose", action="store_true", help="hand the daemon the true start pose")
     p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")
     p.set_defaults(handler=_cmd_sim)
 

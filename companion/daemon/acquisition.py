@@ -40,7 +40,7 @@ class AcquisitionInputs:
     height_std_m: float
     T_ned_body_hint: FloatArray
     y_std_m: float = 1.0
-    yaw_std_rad: float = 0.6
+    yaw_std_rad: float = 0.45
 
 
 class RackAcquirer:
