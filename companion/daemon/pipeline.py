@@ -17,6 +17,7 @@ the start pose, then the filter's estimate after it lost the rack.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -65,6 +66,7 @@ class Measurement:
     rack_reset: bool = False  # the rack tracker was re-initialised (FrameInputs.reset_T_ned_body) on this frame
     rack_acquired: bool = False  # the rack was acquired from this image and the tracker restarted there
     acquisition: Any | None = None  # the `AcquisitionResult` of an attempt on this frame
+    rack_y_fixed: bool = False  # the tracker's along-pipe position was corrected from the rack's end
 
     @property
     def rack_ok(self) -> bool:
@@ -154,6 +156,7 @@ class VisionPipeline:
         rack = None
         ground = None
         acquired = False
+        y_fixed = False
         acquisition = None
         acq = self.acquirer
         if self.rack_tracker is not None and acq is not None and acq.acquiring and inputs.acquisition is not None:
@@ -168,12 +171,19 @@ class VisionPipeline:
             rack = self.rack_tracker.track(image, stamp_s)
             if acq is not None:
                 acq.after_track(bool(rack.ok))
+                if bool(rack.ok) and acq.y_unobserved and hasattr(rack, "__dataclass_fields__"):
+                    T_fixed = acq.fix_y(image, np.asarray(rack.T_rack_cam, dtype=np.float64))
+                    if T_fixed is not None:
+                        self.rack_tracker.reset(T_fixed)
+                        rack = dataclasses.replace(rack, T_rack_cam=T_fixed)  # type: ignore[type-var]
+                        y_fixed = True
         if (self.ground_odometer is not None and inputs.height_m is not None
                 and inputs.height_m >= self.min_ground_height_m):
             ground = self.ground_odometer.update(image, stamp_s, inputs.height_m, inputs.roll_rad, inputs.pitch_rad)
         self.frames += 1
         m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0,
-                        rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition)
+                        rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition,
+                        rack_y_fixed=y_fixed)
         self.rack_ok_frames += int(m.rack_ok)
         self.ground_ok_frames += int(m.ground_ok)
         return m
@@ -211,6 +221,8 @@ class VisionPipeline:
         if measurement.rack_acquired and self.acquirer is not None:
             # acquired without a crossing pipe in view: y is the prior's, as uncertain as it was
             self.rack_seed_along_pipe_std_m = float(self.acquirer.last_y_std_m)
+        if measurement.rack_y_fixed:
+            self.rack_seed_along_pipe_std_m = 0.0  # y from the rack's end: as good as across the pipes
         if measurement.rack is not None:
             rack = measurement.rack
             if bool(rack.ok):

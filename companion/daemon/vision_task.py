@@ -154,6 +154,10 @@ class VisionTask(DaemonState):
         self.counters.frames += 1
         if m.acquisition is not None:
             self._report_acquisition(m)
+        if m.rack_y_fixed and self.pipeline.acquirer is not None:
+            dy = float(self.pipeline.acquirer.last_y_fix_m)
+            self._event("rack-y-fixed", dy_m=round(dy, 3))
+            self._gcs_text(f"rack end in view: along-pipe position corrected by {100.0 * dy:+.0f} cm", "info")
         try:
             nav = self.pipeline.fuse(m, self.nav_filter)
         except CompanionError as exc:
@@ -163,9 +167,11 @@ class VisionTask(DaemonState):
         self.last_nav = nav
         fresh = bool(nav.ok) and abs(float(nav.stamp_s) - float(frame.stamp_s)) < 1e-6
         acq = self.pipeline.acquirer
-        if m.rack_acquired:
+        if m.rack_acquired or m.rack_y_fixed:
+            # the tracker was moved to a pose better than the filter's: hold the re-seeds from the filter
+            # until it has taken a pose from there (or the tracker is lost and acquiring again)
             self._hold_rack_reseed, self._rack_fail_streak = True, 0
-        elif (m.rack_ok and str(nav.source) == "rack") or (acq is not None and acq.acquiring):
+        elif (m.rack_ok and fresh and str(nav.source) == "rack") or (acq is not None and acq.acquiring):
             self._hold_rack_reseed = False
         if m.rack is not None:
             # a rack pose the filter did not accept (gated) counts as a tracker failure too
