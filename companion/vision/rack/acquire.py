@@ -208,6 +208,12 @@ def acquire_rack(
                 chk = chk2
         polished.append((score, sign, chk))
     polished.sort(key=lambda sc: -sc[0])
+    if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
+        # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
+        # rack's side, or none where it puts a neighbour) rather than failing outright; the poses that
+        # explain the most limbs are the hypotheses.
+        n_ok = [num_limbs_ok(chk, cfg, n_par) for _, _, chk in polished]
+        polished = [p for p, n in zip(polished, n_ok, strict=True) if n == max(n_ok)]
     # y from a crossing pipe for the best only: the others are kept as alternatives to report.
     out = [_finish(sign, chk, score, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping, up_cam, up_weight,
                    k == 0) for k, (score, sign, chk) in enumerate(polished)]

@@ -27,7 +27,7 @@ def decide(out: list[RackHypothesis], rivals: list[tuple[float, int, FloatArray,
             cfg: AcquisitionConfig, up_cam: FloatArray, rival_limbs: int) -> str:
     """The empty string when the best of `out` (ranked, distinct) deserves confidence, else why not.
     Rejected poses (score, sign, pose, agreeing limbs) count as rivals when they agree on at least
-    `rival_limbs` limbs (0 = all of them)."""
+    `rival_limbs` limbs (0 = all of them) at a height the autopilot allows (`height_gate_sigma`)."""
     status = ""
     best = out[0].T_rack_cam
     tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
@@ -41,6 +41,7 @@ def decide(out: list[RackHypothesis], rivals: list[tuple[float, int, FloatArray,
     elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
         status = f"ambiguous: {len(out)} hypotheses score alike"
     elif any(s > cfg.ambiguity_ratio * out[0].score and n_ok >= rival_limbs
+             and abs(T[2, 3] - prior.height_m) <= cfg.height_gate_sigma * prior.height_std_m
              and ((sign < 0) != out[0].reversed or abs(T[0, 3] - best[0, 3]) >= cfg.distinct_m)
              for s, sign, T, n_ok in rivals):
         status = "ambiguous: a rejected pose fits about as well"
@@ -95,16 +96,17 @@ def limbs_ok(chk: EdgeCheck, cfg: AcquisitionConfig, run_scale: float = 1.0) -> 
 
 
 def flanked_pipes(chk: EdgeCheck, cfg: AcquisitionConfig, n_par: int) -> np.ndarray[Any, np.dtype[np.intp]]:
-    """Parallel pipes m whose two limbs agree and so do the facing limbs of their neighbours m - 1 and
-    m + 1 (just the one neighbour for the outermost pipes). Limb 2m is pipe m's limb towards rack -x."""
+    """Interior parallel pipes m whose two limbs agree and so do the facing limbs of their neighbours
+    m - 1 and m + 1. Limb 2m is pipe m's limb towards rack -x."""
     if n_par < 2:
         return np.zeros(0, dtype=np.intp)
-    ok = limbs_ok(chk, cfg)[: 2 * n_par]
-    # A neighbour's limb is often cut by the image border or a rust spot at 0.6 m: half the run asked of
-    # the central pipe's limbs.
-    near = limbs_ok(chk, cfg, 0.5)[: 2 * n_par]
-    left = np.concatenate([[True], near[1:-2:2]])  # limb 2m - 1 (pipe m - 1's, facing pipe m)
-    right = np.concatenate([near[2::2], [True]])  # limb 2m + 2
+    # At 0.6 m a rust spot on a limb or the image border cuts a limb into pieces: half the run asked
+    # from afar, for each of the pattern's four limbs (which together are what a stripe has not).
+    ok = limbs_ok(chk, cfg, 0.5)[: 2 * n_par]
+    # The outermost pipes do not qualify: their outer side shows the ground, which an interior pipe of the
+    # same radius shows too where its neighbour's limb is not seen (found at 0.6 m: pipe 5 taken for pipe 2).
+    left = np.concatenate([[False], ok[1:-2:2]])  # limb 2m - 1 (pipe m - 1's, facing pipe m)
+    right = np.concatenate([ok[2::2], [False]])  # limb 2m + 2
     return np.flatnonzero(ok[0::2] & ok[1::2] & left & right)
 
 
