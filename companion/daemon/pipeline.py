@@ -231,7 +231,11 @@ class VisionPipeline:
                 if along_std_m > 0.0:
                     cov = cov + along_std_m**2 * self._along_pipe_outer(np.asarray(rack.T_rack_cam, dtype=np.float64))
                 rack = _RackWithFloor(rack, cov)
-            nav_filter.add_rack(rack, measurement.stamp_s)
+            # an acquired pose or y from the rack's end is better than the estimate: a reset if they disagree
+            if bool(rack.ok) and (measurement.rack_acquired or measurement.rack_y_fixed):
+                nav_filter.add_rack(rack, measurement.stamp_s, reset=True)
+            else:
+                nav_filter.add_rack(rack, measurement.stamp_s)
         if measurement.ground is not None:
             ground = measurement.ground
             if bool(ground.ok):
