@@ -3,6 +3,7 @@
 Subcommands (DESIGN.md "Command line")::
 
     companion sim [--mission FILE] [--autopilot ardupilot|px4] [--fault SPEC]... [--headless] [--out DIR]
+                  [--start-error M,DEG] [--seed-true-pose]
     companion fake-autopilot --listen URL [--profile ardupilot|px4]
     companion run --config FILE
     companion check-config [--offline] FILE
