@@ -111,6 +111,7 @@ class VisionPipeline:
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
         self.acquirer: Any | None = None  # `RackAcquirer` when acquisition is on (vision.rack_acquire)
+        self._y_fix_pending = False  # y was fixed on a frame the tracker missed: mark its next good pose
         self._pipe_top_m = 0.0  # mean height of the parallel pipes' tops above the support plane (m)
         self.ground_odometer: Any | None = None
         if source in ("rack", "auto"):
@@ -171,12 +172,18 @@ class VisionPipeline:
             rack = self.rack_tracker.track(image, stamp_s)
             if acq is not None:
                 acq.after_track(bool(rack.ok))
-                if bool(rack.ok) and acq.y_unobserved and hasattr(rack, "__dataclass_fields__"):
+                ok = bool(rack.ok)
+                # The end coming into view with y wrong is what makes the tracker miss frames (its limbs run
+                # past the end): look on those too, from its predicted pose, while it is still locked.
+                if acq.y_unobserved and (ok or acq.locked) and hasattr(rack, "__dataclass_fields__"):
                     T_fixed = acq.fix_y(image, np.asarray(rack.T_rack_cam, dtype=np.float64))
                     if T_fixed is not None:
                         self.rack_tracker.reset(T_fixed)
                         rack = dataclasses.replace(rack, T_rack_cam=T_fixed)  # type: ignore[type-var]
-                        y_fixed = True
+                        y_fixed, self._y_fix_pending = ok, not ok
+                elif ok and self._y_fix_pending:
+                    # the first good pose after a fix made on a missed frame goes to the filter as the reset
+                    y_fixed, self._y_fix_pending = True, False
         if (self.ground_odometer is not None and inputs.height_m is not None
                 and inputs.height_m >= self.min_ground_height_m):
             ground = self.ground_odometer.update(image, stamp_s, inputs.height_m, inputs.roll_rad, inputs.pitch_rad)
