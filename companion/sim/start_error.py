@@ -20,7 +20,9 @@ from companion.checks import FloatArray
 from companion.errors import InputError
 from companion.geometry import frames, se3
 
-__all__ = ["StartError", "StartPose", "parse_start_error", "start_hint", "start_pose"]
+__all__ = ["StartError", "StartPose", "offset_lla", "parse_start_error", "start_hint", "start_pose"]
+
+EARTH_RADIUS_M = 6378137.0  # WGS-84 equatorial radius: metres to degrees near the origin
 
 
 @dataclass(frozen=True)
@@ -85,3 +87,11 @@ def start_pose(error: StartError, seed: int, nominal: StartPose | None = None) -
 def start_hint(true_start: StartPose, nominal: StartPose | None = None, seed_true_pose: bool = False) -> FloatArray:
     """The start pose the daemon is given: the configured one, or the true one with `seed_true_pose`."""
     return true_start.T_ned_body if seed_true_pose else (nominal or StartPose(0.0, 0.0, 0.0)).T_ned_body
+
+
+def offset_lla(origin_deg: tuple[float, float, float], north_m: float, east_m: float) -> tuple[float, float, float]:
+    """(lat deg, lon deg, alt m) `north_m`, `east_m` from `origin_deg` (flat earth: metres around the origin)."""
+    lat, lon, alt = (float(v) for v in origin_deg)
+    dlat = math.degrees(north_m / EARTH_RADIUS_M)
+    dlon = math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(lat))))
+    return lat + dlat, lon + dlon, alt
