@@ -40,3 +40,12 @@ def test_the_daemon_gets_the_configured_start_unless_asked_for_the_true_one() ->
     T = start_hint(true, seed_true_pose=True)
     np.testing.assert_allclose(T[:3, 3], [true.north_m, true.east_m, 0.0])
     assert frames.yaw_from_rotation(T[:3, :3]) == pytest.approx(true.yaw_rad)
+
+
+def test_offset_lla_moves_the_sitl_home_by_metres() -> None:
+    from companion.sim.start_error import EARTH_RADIUS_M, offset_lla
+
+    lat, lon, alt = offset_lla((47.4, 8.5, 488.0), 1.0, -2.0)
+    assert alt == 488.0
+    assert math.radians(lat - 47.4) * EARTH_RADIUS_M == pytest.approx(1.0, rel=1e-9)
+    assert math.radians(lon - 8.5) * EARTH_RADIUS_M * math.cos(math.radians(47.4)) == pytest.approx(-2.0, rel=1e-9)
