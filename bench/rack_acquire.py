@@ -9,7 +9,11 @@ position y with 0.5 m noise (std 1 m), and, unless `--yaw-std-deg 0`, the headin
 noise. Each view is rendered with the appearance models asked for (`default`: RackScene;
 `field`: FieldRackScene, the grounds cycling through grating, concrete, natural).
 
-Per attempt: `acquire_rack` is timed (one thread). Outcomes: `confident` or not; the pipe
+Per attempt: `acquire_rack` is timed (one thread). Each failure is put in one category
+(`failure_categories`): no pattern found / no hypothesis agrees with the edges / ambiguous /
+score below the floor / strays from the autopilot's height or tilt (each with whether the best
+hypothesis had the right assignment), confident with a wrong assignment, or right but the pose
+off after the first tracked frame. Outcomes: `confident` or not; the pipe
 assignment is right when the best hypothesis has the true direction of travel and its x is
 within half the narrowest pipe pitch of the truth (a wrong pipe or direction moves it by a whole
 pitch or flips it); it locks when `RackTracker.reset(best) + track(same image)` ends within
@@ -157,7 +161,7 @@ def main() -> None:
             res = acquire_rack(img, model, CAMERA, prior)
             dt_ms = (time.perf_counter() - t0) * 1e3
             row: dict[str, Any] = {"view": i, "rack": name, "appearance": key[1], "n_full": n_full, "ms": dt_ms,
-                                   "confident": res.confident, "n_hyp": len(res.hypotheses),
+                                   "confident": res.confident, "n_hyp": len(res.hypotheses), "status": res.status,
                                    "assign_ok": False, "locked": False, "track_ms": None}
             best = res.best
             if best is not None:
@@ -197,7 +201,34 @@ def rates(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "confident_right_but_not_locked_rate": conf_unlocked / n,
         "no_lock_rate": (n - len(conf)) / n,
         "best_right_when_not_confident": sum(1 for r in rows if not r["confident"] and r["assign_ok"]),
+        "failure_categories": categories(rows),
     }
+
+
+def category(r: dict[str, Any]) -> str | None:
+    """Why an attempt is not correct (None when it is): the acquirer's own verdict, or the outcome."""
+    if r["confident"]:
+        if not r["assign_ok"]:
+            return "confident_wrong_assignment"
+        return None if r["locked"] else "pose_off_after_first_tracked_frame"
+    status = str(r["status"])
+    if r["n_hyp"] == 0:
+        return "no_pattern_found" if status.startswith("no pipe pattern") else "no_hypothesis_agrees"
+    if status.startswith("ambiguous"):
+        return "ambiguous"
+    if status.startswith("best score"):
+        return "score_below_floor"
+    return "strays_from_height_or_tilt"
+
+
+def categories(rows: list[dict[str, Any]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in rows:
+        c = category(r)
+        if c is not None:
+            key = c if c.startswith(("confident", "pose")) else f"{c}_best_{'right' if r['assign_ok'] else 'wrong'}"
+            out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
 def summary(rows: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, Any]:

@@ -3,6 +3,7 @@
 Subcommands (DESIGN.md "Command line")::
 
     companion sim [--mission FILE] [--autopilot ardupilot|px4] [--fault SPEC]... [--headless] [--out DIR]
+                  [--start-error M,DEG] [--seed-true-pose]
     companion fake-autopilot --listen URL [--profile ardupilot|px4]
     companion run --config FILE
     companion check-config [--offline] FILE
@@ -73,8 +74,10 @@ def _fail(message: str, code: int) -> int:
 def _cmd_sim(args: argparse.Namespace) -> int:
     from companion.sim.ground_station import ground_station_overrides
     from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
+    from companion.sim.start_error import parse_start_error
 
     faults = [parse_fault_spec(spec) for spec in args.fault]
+    start_error = parse_start_error(args.start_error) if args.start_error is not None else None
     _setup_logging(args.verbose)
     options = SimOptions(
         mission_path=Path(args.mission) if args.mission else None,
@@ -87,6 +90,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         wind=not args.no_wind,
         speed=float(args.speed),
         config_overrides=ground_station_overrides(args),
+        start_error=start_error,
+        seed_true_pose=bool(args.seed_true_pose),
     )
     return run_sim_cli(options)
 
@@ -218,6 +223,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-wind", action="store_true", help="fly without Dryden wind")
     p.add_argument("--speed", type=float, default=1.0,
                    help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
+    p.add_argument("--start-error", metavar="M,DEG", default=None,
+                   help="boot the vehicle up to M metres and DEG degrees away from the configured start (seeded); "
+                   "the daemon must find the rack in the image")
+    p.add_argument("--seed-true-pose", action="store_true", help="hand the daemon the true start pose")
     p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")
     from companion.sim.ground_station import add_ground_station_arguments
 

@@ -210,9 +210,12 @@ async def rig(
     max_records: int | None = 200_000,
     record_frames: bool | None = None,
     start_hint: Callable[[Any], Any] | None = None,
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> AsyncIterator[Rig]:
     """Fake autopilot + inline camera + daemon on a ManualClock; waits until poses flow (EKF healthy).
 
+    `start`: where the vehicle boots (north m, east m, yaw rad); `start_hint` maps its true pose to the
+    daemon's start hint (default: the true pose).
     The deck/ground offset of the simulated world comes in as ``camera.sim_ground_z_ned_m``;
     `record_frames` None keeps ``logging.record_frames`` of the config (overrides)."""
     clock = ManualClock(1000.0)
@@ -229,7 +232,8 @@ async def rig(
         flight = dataclasses.replace(flight, ekf_alignment_s=0.5)
     ap_cfg = FakeAutopilotConfig(profile=profile, listen="udpin:127.0.0.1:0", seed=3, gcs_heartbeat=gcs_heartbeat,
                                  wind=DrydenConfig(w20_m_s=0.0), physics_rate_hz=100.0,
-                                 flight=flight, max_records=max_records)
+                                 flight=flight, max_records=max_records, start_north_m=start[0],
+                                 start_east_m=start[1], start_yaw_rad=start[2])
     async with FakeAutopilot(ap_cfg, clock=clock) as ap:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=ap.url_for_client))
         camera_model = load_camera_model(config.camera)

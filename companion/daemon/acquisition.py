@@ -40,7 +40,7 @@ class AcquisitionInputs:
     height_std_m: float
     T_ned_body_hint: FloatArray
     y_std_m: float = 1.0
-    yaw_std_rad: float = 0.6
+    yaw_std_rad: float = 0.45
 
 
 class RackAcquirer:
@@ -64,6 +64,9 @@ class RackAcquirer:
         self.acquisitions = 0
         self.last: Any | None = None  # the last AcquisitionResult
         self.last_y_std_m = 0.0  # along-pipe std of the last acquired pose (y not observed: the prior's)
+        self.y_unobserved = False  # the tracker's rack y is a prior's: look for the rack's end while tracking
+        self.y_fixes = 0
+        self.last_y_fix_m = 0.0  # the last correction of y from the rack's end (m)
 
     def after_track(self, ok: bool) -> None:
         """Update the lock state with the tracker's verdict on this frame."""
@@ -101,9 +104,35 @@ class RackAcquirer:
         self.bad_frames = 0
         self.acquisitions += 1
         self.last_y_std_m = 0.0 if best.y_observed else float(inputs.y_std_m)
+        self.y_unobserved = not best.y_observed
         T_rack_cam = np.asarray(best.T_rack_cam, dtype=np.float64).copy()
         if not best.y_observed:
             # nothing in view fixes the position along the pipes: keep the estimate's exactly (the refined
             # hypothesis can slide along them), so a re-acquisition never steps further than the drift
             T_rack_cam[1, 3] = T_rack_cam_hint[1, 3]
         return T_rack_cam
+
+    def fix_y(self, image: Any, T_rack_cam: FloatArray) -> FloatArray | None:
+        """While y is the prior's: the tracked pose with y taken from the rack's end when one is in view, else None.
+
+        The end (`companion.vision.rack.acquire_end`) comes into view on the climb after a take-off near it;
+        the first clean one fixes y (the filter then takes the step as a reset) and the search stops.
+        """
+        if not self.y_unobserved:
+            return None
+        from companion.vision.rack.acquire_end import rack_end_fix
+
+        gray = np.asarray(image)
+        if gray.ndim == 3:
+            gray = np.asarray(gray[:, :, 0] if gray.shape[2] == 1 else
+                              (gray @ np.array([0.114, 0.587, 0.299])).astype(np.uint8))
+        fix = rack_end_fix(gray, self.model, self.camera, T_rack_cam)
+        if not fix.found:
+            return None
+        self.y_unobserved = False
+        self.last_y_std_m = 0.0
+        self.y_fixes += 1
+        self.last_y_fix_m = fix.dy_m
+        T = np.array(T_rack_cam, dtype=np.float64, copy=True)
+        T[1, 3] += fix.dy_m
+        return T

@@ -17,6 +17,7 @@ the start pose, then the filter's estimate after it lost the rack.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -65,6 +66,7 @@ class Measurement:
     rack_reset: bool = False  # the rack tracker was re-initialised (FrameInputs.reset_T_ned_body) on this frame
     rack_acquired: bool = False  # the rack was acquired from this image and the tracker restarted there
     acquisition: Any | None = None  # the `AcquisitionResult` of an attempt on this frame
+    rack_y_fixed: bool = False  # the tracker's along-pipe position was corrected from the rack's end
 
     @property
     def rack_ok(self) -> bool:
@@ -109,6 +111,7 @@ class VisionPipeline:
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
         self.acquirer: Any | None = None  # `RackAcquirer` when acquisition is on (vision.rack_acquire)
+        self._y_fix_pending = False  # y was fixed on a frame the tracker missed: mark its next good pose
         self._pipe_top_m = 0.0  # mean height of the parallel pipes' tops above the support plane (m)
         self.ground_odometer: Any | None = None
         if source in ("rack", "auto"):
@@ -154,6 +157,7 @@ class VisionPipeline:
         rack = None
         ground = None
         acquired = False
+        y_fixed = False
         acquisition = None
         acq = self.acquirer
         if self.rack_tracker is not None and acq is not None and acq.acquiring and inputs.acquisition is not None:
@@ -168,12 +172,25 @@ class VisionPipeline:
             rack = self.rack_tracker.track(image, stamp_s)
             if acq is not None:
                 acq.after_track(bool(rack.ok))
+                ok = bool(rack.ok)
+                # The end coming into view with y wrong is what makes the tracker miss frames (its limbs run
+                # past the end): look on those too, from its predicted pose, while it is still locked.
+                if acq.y_unobserved and (ok or acq.locked) and hasattr(rack, "__dataclass_fields__"):
+                    T_fixed = acq.fix_y(image, np.asarray(rack.T_rack_cam, dtype=np.float64))
+                    if T_fixed is not None:
+                        self.rack_tracker.reset(T_fixed)
+                        rack = dataclasses.replace(rack, T_rack_cam=T_fixed)  # type: ignore[type-var]
+                        y_fixed, self._y_fix_pending = ok, not ok
+                elif ok and self._y_fix_pending:
+                    # the first good pose after a fix made on a missed frame goes to the filter as the reset
+                    y_fixed, self._y_fix_pending = True, False
         if (self.ground_odometer is not None and inputs.height_m is not None
                 and inputs.height_m >= self.min_ground_height_m):
             ground = self.ground_odometer.update(image, stamp_s, inputs.height_m, inputs.roll_rad, inputs.pitch_rad)
         self.frames += 1
         m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0,
-                        rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition)
+                        rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition,
+                        rack_y_fixed=y_fixed)
         self.rack_ok_frames += int(m.rack_ok)
         self.ground_ok_frames += int(m.ground_ok)
         return m
@@ -211,6 +228,8 @@ class VisionPipeline:
         if measurement.rack_acquired and self.acquirer is not None:
             # acquired without a crossing pipe in view: y is the prior's, as uncertain as it was
             self.rack_seed_along_pipe_std_m = float(self.acquirer.last_y_std_m)
+        if measurement.rack_y_fixed:
+            self.rack_seed_along_pipe_std_m = 0.0  # y from the rack's end: as good as across the pipes
         if measurement.rack is not None:
             rack = measurement.rack
             if bool(rack.ok):
@@ -219,7 +238,11 @@ class VisionPipeline:
                 if along_std_m > 0.0:
                     cov = cov + along_std_m**2 * self._along_pipe_outer(np.asarray(rack.T_rack_cam, dtype=np.float64))
                 rack = _RackWithFloor(rack, cov)
-            nav_filter.add_rack(rack, measurement.stamp_s)
+            # an acquired pose or y from the rack's end is better than the estimate: a reset if they disagree
+            if bool(rack.ok) and (measurement.rack_acquired or measurement.rack_y_fixed):
+                nav_filter.add_rack(rack, measurement.stamp_s, reset=True)
+            else:
+                nav_filter.add_rack(rack, measurement.stamp_s)
         if measurement.ground is not None:
             ground = measurement.ground
             if bool(ground.ok):

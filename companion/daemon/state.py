@@ -102,6 +102,8 @@ class DaemonState:
         self._safety_view = _SafetyView()
         self._rack_reset_pending = False
         self._rack_fail_streak = 0
+        # after an acquisition, until the filter takes the rack pose: no re-seed from its (older) estimate
+        self._hold_rack_reseed = False
         self._unsubscribe: list[Callable[[], Any]] = []
         self._home_T_ned_body: FloatArray | None = None
         self._last_command: Any | None = None

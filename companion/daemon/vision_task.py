@@ -50,6 +50,8 @@ class VisionTask(DaemonState):
                 gz = float(getattr(nf.config, "ground_z_ned_m", 0.0)) if vg is None else float(vg)
                 height = gz - float(est.position_ned_m[2]) - z_cam_body
         reset = None
+        if self._rack_reset_pending and self._hold_rack_reseed:
+            self._rack_reset_pending = False  # the acquired pose is better than the filter's estimate
         if self._rack_reset_pending and nf is not None:
             latest = nf.estimate_latest()
             pos_std = math.sqrt(max(float(np.max(np.diag(np.asarray(latest.pose_covariance))[:3])), 0.0))
@@ -69,23 +71,32 @@ class VisionTask(DaemonState):
 
         nf = self.nav_filter
         hint = self.options.initial_T_ned_body
-        T_hint = np.eye(4) if hint is None else np.asarray(hint, dtype=np.float64)
+        T_start = np.eye(4) if hint is None else np.asarray(hint, dtype=np.float64)
+        T_hint = T_start
         y_std = 1.0
+        state = self.link.state if self.link is not None else None
+        # disarmed on the deck and never located by vision: the filter only dead-reckons from the start hint
+        # (decimetres of drift in seconds); the start hint's height (the deck) and position are the prior
+        resting = state is not None and not bool(state.armed)
         if nf is not None:
             est = nf.estimate_latest()
-            if math.isfinite(float(est.stamp_s)):
+            if math.isfinite(float(est.stamp_s)) and not (resting and str(est.source) == "none"
+                                                          and self.counters.poses_sent == 0):
                 T_hint = np.asarray(est.T_ned_body, dtype=np.float64)
                 y_std = max(1.0, math.sqrt(float(np.max(np.diag(np.asarray(est.pose_covariance))[:2]))))
-        state = self.link.state if self.link is not None else None
         # camera height above the rack's support plane: the autopilot's own height (baro / rangefinder EKF)
-        # when it has one, else the estimate's; the support plane is rack z = 0
-        z_body = float(T_hint[2, 3])
+        # when it has one, else on the deck the start's (the vehicle rests where the configuration puts the
+        # deck) and in flight the estimate's; the support plane is rack z = 0. At rest the height is the
+        # surveyed deck-to-rack offset (3 cm): at 0.6 m over the pipes a pose one pipe off fits the edges
+        # about as well 10 cm higher, and only the height tells them apart.
+        z_body = float(T_start[2, 3] if resting else T_hint[2, 3])
         if state is not None and state.position_ned_m is not None:
             z_body = float(state.position_ned_m[2])
         z_cam = z_body + float(self.T_body_cam[2, 3])
         height = float(self.T_ned_rack[2, 3]) - z_cam
         return AcquisitionInputs(roll_rad=roll, pitch_rad=pitch, height_above_rack_m=height,
-                                 height_std_m=max(0.05 * abs(height), 0.1), T_ned_body_hint=T_hint, y_std_m=y_std)
+                                 height_std_m=0.03 if resting else max(0.05 * abs(height), 0.1),
+                                 T_ned_body_hint=T_hint, y_std_m=y_std)
 
     async def _vision_loop(self) -> None:
         assert self.pipeline is not None and self.camera is not None
@@ -145,6 +156,10 @@ class VisionTask(DaemonState):
         self.counters.frames += 1
         if m.acquisition is not None:
             self._report_acquisition(m)
+        if m.rack_y_fixed and self.pipeline.acquirer is not None:
+            dy = float(self.pipeline.acquirer.last_y_fix_m)
+            self._event("rack-y-fixed", dy_m=round(dy, 3))
+            self._gcs_text(f"rack end in view: along-pipe position corrected by {100.0 * dy:+.0f} cm", "info")
         try:
             nav = self.pipeline.fuse(m, self.nav_filter)
         except CompanionError as exc:
@@ -153,6 +168,13 @@ class VisionTask(DaemonState):
             return
         self.last_nav = nav
         fresh = bool(nav.ok) and abs(float(nav.stamp_s) - float(frame.stamp_s)) < 1e-6
+        acq = self.pipeline.acquirer
+        if m.rack_acquired or m.rack_y_fixed:
+            # the tracker was moved to a pose better than the filter's: hold the re-seeds from the filter
+            # until it has taken a pose from there (or the tracker is lost and acquiring again)
+            self._hold_rack_reseed, self._rack_fail_streak = True, 0
+        elif (m.rack_ok and fresh and str(nav.source) == "rack") or (acq is not None and acq.acquiring):
+            self._hold_rack_reseed = False
         if m.rack is not None:
             # a rack pose the filter did not accept (gated) counts as a tracker failure too
             accepted = m.rack_ok and fresh and str(nav.source) == "rack"

@@ -320,11 +320,13 @@ class NavigationFilter:
 
     # ------------------------------------------------------------------ measurements: entry points
 
-    def add_rack(self, est: RackEstimateLike, stamp_s: float) -> None:
+    def add_rack(self, est: RackEstimateLike, stamp_s: float, *, reset: bool = False) -> None:
         """Absolute pose from the rack tracker, captured at `stamp_s`.
 
         T_ned_body = T_ned_rack @ T_rack_cam @ inverse(T_body_cam); the camera-frame
         right-perturbation covariance maps to the body frame with Ad(T_body_cam).
+        `reset`: the tracker was just moved to a pose found independently of the estimate (rack
+        acquisition, the rack's end): taken like a switch to the rack, a reset when it disagrees.
         """
         if not bool(est.ok):
             self.add_absolute_pose(stamp_s, np.eye(4), np.eye(6), source="rack", ok=False)
@@ -333,7 +335,7 @@ class NavigationFilter:
         cov_cam = _matrix(est.covariance, 6, "est.covariance")
         T_ned_body = self._T_ned_rack @ T_rack_cam @ self._T_cam_body
         cov_body = self._Ad_body_cam @ cov_cam @ self._Ad_body_cam.T
-        self.add_absolute_pose(stamp_s, T_ned_body, cov_body, source="rack", ok=True)
+        self.add_absolute_pose(stamp_s, T_ned_body, cov_body, source="rack", ok=True, reset=reset)
 
     def add_ground(self, est: GroundEstimateLike, stamp_s: float, *, restart: bool = False) -> None:
         """Planar increment (NED dx, dy, dyaw since the odometer's previous frame) captured at `stamp_s`.
@@ -363,13 +365,15 @@ class NavigationFilter:
         )
 
     def add_absolute_pose(
-        self, stamp_s: float, T_ned_body: Any, covariance_6x6: Any, source: str = "rack", *, ok: bool = True
+        self, stamp_s: float, T_ned_body: Any, covariance_6x6: Any, source: str = "rack", *, ok: bool = True,
+        reset: bool = False,
     ) -> None:
         """Absolute body pose T_ned_body (4x4) at `stamp_s`.
 
         `covariance_6x6`: right perturbation of T_ned_body in the body frame, twist
         order (v, w): T_true = T_ned_body @ exp(d), d ~ N(0, cov). `ok=False`
         reports a failed frame (counts towards switching away from the source).
+        `reset=True`: taken like a switch to the source (a reset when it disagrees, see `add_rack`).
         """
         if source != "rack":
             raise InputError(f"source: absolute poses come from 'rack', got {source!r}")
@@ -385,7 +389,7 @@ class NavigationFilter:
             ):
                 self._count("invalid")
                 return
-            data: tuple[Any, ...] = (R.copy(), T[:3, 3].copy(), 0.5 * (C + C.T))
+            data: tuple[Any, ...] = (R.copy(), T[:3, 3].copy(), 0.5 * (C + C.T), bool(reset))
         else:
             data = ()
         self._add("rack", float(stamp_s), ok, data)
@@ -507,11 +511,12 @@ class NavigationFilter:
                 st = self._switch_away_from_rack(st, t)
             self._src = st
             return "failed"
-        R_m, p_m, cov = m.data
+        R_m, p_m, cov, forced = m.data
         r, H = model.absolute_pose_residual(self._x, R_m, p_m)
         good = st.rack_good + 1
-        # Back after a silence longer than the timeout: re-acquire like a switch (a reset if it disagrees).
-        reacquire = st.source == "rack" and t - st.last_rack_ok_s > cfg.source_timeout_s
+        # Back after a silence longer than the timeout, or a pose found independently of the estimate:
+        # re-acquire like a switch (a reset if it disagrees).
+        reacquire = (st.source == "rack" and t - st.last_rack_ok_s > cfg.source_timeout_s) or forced
         if (st.source != "rack" or reacquire) and st.rack_unsettled < cfg.rack_unsettled_frames_max:
             if not self._tilt_agrees(r, H, cov):
                 # Roll and pitch are held by gravity through any vision outage; a tracker that disagrees

@@ -129,6 +129,8 @@ class SimOptions:
     wind_m_s: float = 2.0
     speed: float = 1.0
     rack_along_pipe_std_m: float | None = None  # None: vision.rack_along_pipe_std_m of the config
+    start_error: Any = None  # companion.sim.start_error.StartError: boot away from the configured start
+    seed_true_pose: bool = False  # hand the daemon the true start pose (else the configured one)
     config_overrides: dict[str, Any] = field(default_factory=dict)
 
 
@@ -205,16 +207,24 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
 
     wind = DrydenConfig(w20_m_s=options.wind_m_s if options.wind else 0.0, from_rad=math.radians(60.0),
                         turbulence=1.0 if options.wind else 0.0)
+    from companion.sim.start_error import StartError, start_hint, start_pose
+
+    start = start_pose(options.start_error or StartError(), options.seed)
+    if options.start_error is not None:
+        record.notes.append(f"start error {options.start_error.text()}: the vehicle boots at N {start.north_m:+.2f} "
+                            f"E {start.east_m:+.2f} m, heading {math.degrees(start.yaw_rad):+.1f} deg")
     ap_cfg = FakeAutopilotConfig(profile=options.autopilot, listen="udpin:127.0.0.1:0", seed=options.seed,
                                  wind=wind, gcs_heartbeat=True, physics_rate_hz=200.0,
-                                 flight=FlightParams(takeoff_speed_m_s=0.3))
+                                 flight=FlightParams(takeoff_speed_m_s=0.3), start_north_m=start.north_m,
+                                 start_east_m=start.east_m, start_yaw_rad=start.yaw_rad)
     async with FakeAutopilot(ap_cfg, clock=clock) as ap:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=ap.url_for_client))
         base_render = SceneRenderer.from_config(config, camera_model, seed=options.seed)
         base_render(ap.truth.T_ned_body)  # warm the renderer's caches before the camera's clock runs
         render = FaultyRender(base_render, clock.now)
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
-            render=render, api=bool(config.api.enabled), sdnotify=False, initial_T_ned_body=ap.truth.T_ned_body,
+            render=render, api=bool(config.api.enabled), sdnotify=False,
+            initial_T_ned_body=start_hint(start, seed_true_pose=options.seed_true_pose),
             flight_root=out_dir / "flights", visual_ground_z_ned_m=_visual_ground_z(config, base_render),
             rack_along_pipe_std_m=options.rack_along_pipe_std_m,
         ))

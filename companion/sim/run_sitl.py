@@ -85,13 +85,20 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     wind = {"SIM_WIND_SPD": options.wind_m_s if options.wind else 0.0, "SIM_WIND_DIR": 60.0,
             "SIM_WIND_TURB": 0.1 * options.wind_m_s if options.wind else 0.0}
     print(f"starting the ArduCopter SITL ({binary})", file=out, flush=True)
-    with ArduPilotSitl(binary, home=f"{origin[0]},{origin[1]},{origin[2]},0", extra_params=wind) as sitl:
+    from companion.sim.start_error import StartError, offset_lla, start_hint, start_pose
+
+    start = start_pose(options.start_error or StartError(), options.seed)  # --start-error: boot away from it
+    home = offset_lla(origin, start.north_m, start.east_m)
+    heading_deg = math.degrees(start.yaw_rad) % 360.0
+    with ArduPilotSitl(binary, home=f"{home[0]:.9f},{home[1]:.9f},{home[2]},{heading_deg:.2f}",
+                       extra_params=wind) as sitl:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=sitl.url))
         base = SceneRenderer.from_config(config, camera_model, seed=options.seed)
         base(np.eye(4))  # warm the renderer's caches
         render = FaultyRender(base, clock.now)
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
-            render=render, api=False, sdnotify=False, initial_T_ned_body=np.eye(4),
+            render=render, api=False, sdnotify=False,
+            initial_T_ned_body=start_hint(start, seed_true_pose=options.seed_true_pose),
             flight_root=out_dir / "flights", visual_ground_z_ned_m=None,
             rack_along_pipe_std_m=options.rack_along_pipe_std_m))
         frames_seen: list[Any] = []

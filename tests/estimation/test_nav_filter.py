@@ -484,6 +484,28 @@ def test_rack_back_after_silence_is_reacquired_with_a_reset_if_needed() -> None:
     np.testing.assert_allclose(f.estimate().position_ned_m, shifted[:3, 3], atol=2e-3)
 
 
+def test_a_rack_pose_marked_reset_is_taken_at_once_even_when_the_gate_rejects_it() -> None:
+    """Issue #16: an acquired pose (or y from the rack's end) is better than the estimate: a reset."""
+    cfg = NavFilterConfig(rack_frames_to_switch_in=3)
+    f = static_filter(cfg)
+    T_rack_cam = frames.T_rack_cam_from_T_ned_body(T0, frames.default_T_ned_rack(), frames.default_T_body_cam())
+    t = 0.0
+    for _ in range(5):
+        t = run_static(f, t, t + 0.05)
+        f.add_rack(FakeRack(True, T_rack_cam, RACK_COV), t)
+    assert f.source == "rack" and f.reset_counter == 0
+    shifted = se3.make(np.eye(3), np.array([0.3, 0.0, 0.0])) @ T0
+    T_shifted = frames.T_rack_cam_from_T_ned_body(shifted, frames.default_T_ned_rack(), frames.default_T_body_cam())
+    t = run_static(f, t, t + 0.05)
+    f.add_rack(FakeRack(True, T_shifted, RACK_COV), t)  # 30 cm away, 1 cm std: gated out
+    assert f.reset_counter == 0
+    np.testing.assert_allclose(f.estimate().position_ned_m, T0[:3, 3], atol=0.02)
+    t = run_static(f, t, t + 0.05)
+    f.add_rack(FakeRack(True, T_shifted, RACK_COV), t, reset=True)
+    assert f.reset_counter == 1 and f.estimate().stamp_s == t
+    np.testing.assert_allclose(f.estimate().position_ned_m, shifted[:3, 3], atol=2e-3)
+
+
 @pytest.mark.parametrize("yaw_error_rad", [0.3, 1.5, 3.0])
 def test_reset_keeps_the_prior_along_axes_the_rack_barely_measures(yaw_error_rad: float) -> None:
     """A rack pose known well except along the pipes (north): the reset moves east/down/attitude only."""

@@ -27,6 +27,7 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.errors import InputError
 from companion.geometry import se3
+from companion.vision.rack.acquire_decide import credible, decide, distinct, good_pipes, num_limbs_ok
 from companion.vision.rack.acquire_lines import (
     LimbClusters,
     Segments,
@@ -153,7 +154,7 @@ def acquire_rack(
     up_weight = cfg.covariance_inflation * (cfg.edge_noise_px / cfg.attitude_std_rad) ** 2
     h_weight = cfg.covariance_inflation * (cfg.edge_noise_px / prior.height_std_m) ** 2
     checked: list[tuple[float, int, EdgeCheck, int]] = []
-    rivals: list[tuple[float, int, FloatArray]] = []
+    rivals: list[tuple[float, int, FloatArray, int]] = []
     n_all = pipes_all.radii.size
     y_lo, y_hi = prior.y_m - 4.0 * prior.y_std_m, prior.y_m + 4.0 * prior.y_std_m
     img_f = gray.astype(np.float32)
@@ -170,7 +171,7 @@ def acquire_rack(
                          c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
                          cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                          prior.height_m, h_weight)
-        if not _credible(chk, cfg, prior, up_cam) and n_all > n_par:
+        if not credible(chk, cfg, prior, up_cam, n_par) and n_all > n_par:
             # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
             # the segments along it) and check again with every pipe.
             ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
@@ -183,9 +184,9 @@ def acquire_rack(
                                  cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                                  prior.height_m, h_weight)
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
-        if not _credible(chk, cfg, prior, up_cam):
+        if not credible(chk, cfg, prior, up_cam, n_par):
             # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
-            rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam))
+            rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam, num_limbs_ok(chk, cfg, n_par)))
             continue
         checked.append((chk.agree_fraction * explained, c.sign, chk, c.direction))
     checked.sort(key=lambda sc: -sc[0])
@@ -202,19 +203,29 @@ def acquire_rack(
                               cfg.polish_ranges_px, cfg.samples_per_limb,
                               cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
                               prior.height_m, h_weight)
-            if _credible(chk2, cfg, prior, up_cam):
+            if credible(chk2, cfg, prior, up_cam, n_par):
                 score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
                 chk = chk2
         polished.append((score, sign, chk))
     polished.sort(key=lambda sc: -sc[0])
+    if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
+        # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
+        # rack's side, or none where it puts a neighbour) rather than failing outright; the poses that
+        # explain the most limbs are the hypotheses.
+        n_ok = [num_limbs_ok(chk, cfg, n_par) for _, _, chk in polished]
+        polished = [p for p, n in zip(polished, n_ok, strict=True) if n == max(n_ok)]
     # y from a crossing pipe for the best only: the others are kept as alternatives to report.
     out = [_finish(sign, chk, score, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping, up_cam, up_weight,
                    k == 0) for k, (score, sign, chk) in enumerate(polished)]
-    out = _distinct(out, cfg)
+    out = distinct(out, cfg)
     if not out:
         return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
                                  num_limbs)
-    status = _decide(out, rivals, prior, cfg, up_cam)
+    best_chk = polished[0][2]
+    # At close range a pose off by a pipe explains fewer limbs (a missing neighbour) rather than
+    # failing outright; it counts as a rival only when it explains as many limbs as the best.
+    rival_limbs = num_limbs_ok(best_chk, cfg, n_par) if good_pipes(best_chk, cfg).size < cfg.min_pipes else 0
+    status = decide(out, rivals, prior, cfg, up_cam, rival_limbs)
     return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
 
 
@@ -258,28 +269,6 @@ def _propose(
     return dirs, cands, num_limbs
 
 
-def _decide(out: list[RackHypothesis], rivals: list[tuple[float, int, FloatArray]], prior: AcquisitionPrior,
-            cfg: AcquisitionConfig, up_cam: FloatArray) -> str:
-    """The empty string when the best of `out` (ranked, distinct) deserves confidence, else why not."""
-    status = ""
-    best = out[0].T_rack_cam
-    tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
-    if out[0].score < cfg.min_score:
-        status = f"best score {out[0].score:.2f} below {cfg.min_score:.2f}: the image is not explained"
-    elif abs(best[2, 3] - prior.height_m) > cfg.confident_sigma * prior.height_std_m \
-            or tilt > cfg.confident_sigma * cfg.attitude_std_rad:
-        # Credible but in the tails of the autopilot's height or tilt: where the lateral / roll
-        # confusion and shadows produce fits that look right. Offered, not trusted.
-        status = "best pose strays from the autopilot's height or tilt"
-    elif len(out) > 1 and out[1].score > cfg.ambiguity_ratio * out[0].score:
-        status = f"ambiguous: {len(out)} hypotheses score alike"
-    elif any(s > cfg.ambiguity_ratio * out[0].score
-             and ((sign < 0) != out[0].reversed or abs(T[0, 3] - best[0, 3]) >= cfg.distinct_m)
-             for s, sign, T in rivals):
-        status = "ambiguous: a rejected pose fits about as well"
-    return status
-
-
 def _polarity_of(chk: EdgeCheck, n_par: int) -> int:
     """The pipes' polarity (+1 brighter than around them, -1 darker) the check's limbs agree on, else 0."""
     s = float(np.sum(chk.limb_polarity[: 2 * n_par]))
@@ -306,49 +295,6 @@ def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
         if all(c.sign != o.sign or abs(c.T_rack_cam[0, 3] - o.T_rack_cam[0, 3]) >= sep_m
                or abs(c.T_rack_cam[2, 3] - o.T_rack_cam[2, 3]) >= 2 * sep_m for o in out):
             out.append(c)
-    return out
-
-
-def _credible(chk: EdgeCheck, cfg: AcquisitionConfig, prior: AcquisitionPrior, up_cam: FloatArray) -> bool:
-    """Enough limb samples agree on enough pipes, tightly, at a height and tilt the autopilot allows."""
-    if abs(chk.T_rack_cam[2, 3] - prior.height_m) > cfg.height_gate_sigma * prior.height_std_m:
-        return False
-    # Sliding sideways and rolling about the pipes look alike from high above: a pose that buys
-    # its fit with a tilt the autopilot contradicts is that confusion, not the rack.
-    tilt = float(np.arccos(np.clip(chk.T_rack_cam[2, :3] @ up_cam, -1.0, 1.0)))
-    if tilt > cfg.tilt_gate_sigma * cfg.attitude_std_rad:
-        return False
-    # A pipe whose two limbs are in view but show (almost) no edge is not where the pose puts it.
-    ls, la = chk.limb_samples, chk.limb_agree
-    shown = (ls[0::2] >= 0.5 * cfg.samples_per_limb) & (ls[1::2] >= 0.5 * cfg.samples_per_limb)
-    missing = shown & (la[0::2] + la[1::2] < cfg.missing_pipe_agree * (ls[0::2] + ls[1::2]))
-    return chk.agree_fraction >= cfg.min_agree_fraction and chk.residual_px <= cfg.max_residual_px \
-        and _good_pipes(chk, cfg).size >= cfg.min_pipes and not np.any(missing)
-
-
-def _good_pipes(chk: EdgeCheck, cfg: AcquisitionConfig) -> np.ndarray[Any, np.dtype[np.intp]]:
-    """Pipes both of whose limbs are in view (half a limb's samples or more) and agree (min_pipe_agree,
-    with a run of consecutive agreeing samples of at least min_limb_run of the limb)."""
-    ls, la = chk.limb_samples, chk.limb_agree
-    ok = (ls >= 0.5 * cfg.samples_per_limb) & (la >= cfg.min_pipe_agree * np.maximum(ls, 1.0))
-    ok &= chk.limb_run >= cfg.min_limb_run * ls
-    return np.flatnonzero(ok[0::2] & ok[1::2])
-
-
-def _distinct(hyps: list[RackHypothesis], cfg: AcquisitionConfig) -> list[RackHypothesis]:
-    """Drop hypotheses that are the same pose as a better one (same direction, close pose)."""
-    out: list[RackHypothesis] = []
-    for h in hyps:
-        same = False
-        for b in out:
-            rot = float(np.linalg.norm(se3.log(se3.inverse(b.T_rack_cam) @ h.T_rack_cam)[3:]))
-            d_rack = h.T_rack_cam[:3, 3] - b.T_rack_cam[:3, 3]
-            if h.reversed == b.reversed and float(np.hypot(d_rack[0], d_rack[2])) < cfg.distinct_m \
-                    and rot < cfg.distinct_rad:
-                same = True
-                break
-        if not same:
-            out.append(h)
     return out
 
 
@@ -389,7 +335,7 @@ def _finish(
     cov = pose_covariance(final, cfg.covariance_inflation, None if y_observed else prior.y_std_m, np.full(6, 1e-6))
     T_out.flags.writeable = False
     cov.flags.writeable = False
-    good = _good_pipes(chk, cfg)
+    good = good_pipes(chk, cfg)
     good = good[good < n_par]
     ordered = tuple(int(m) for m in (good[::-1] if sign < 0 else good))
     return RackHypothesis(T_rack_cam=T_out, covariance=cov, score=score, pipes=ordered,
