@@ -35,8 +35,15 @@ class RackTracker(TrackerSolve, TrackerMaps):
     """Stateful tracker; call `reset(T_rack_cam)` then `track(image, stamp_s)` for each frame."""
 
     # ------------------------------------------------------------------ public API
-    def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
-        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity."""
+    def reset(
+        self, T_rack_cam: Any, cumulative_gaps: Any = None, position_std_m: float | None = None,
+        rotation_std_rad: float | None = None,
+    ) -> None:
+        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity.
+
+        `position_std_m` / `rotation_std_rad`: how far off that pose may be (1 sigma; default the
+        config's `reset_prior_*`); they set the first frame's prior and its search range.
+        """
         self._T = check_transform(T_rack_cam, "T_rack_cam").copy()
         if cumulative_gaps is not None:
             g = np.asarray(cumulative_gaps, dtype=np.float64).ravel()
@@ -45,6 +52,11 @@ class RackTracker(TrackerSolve, TrackerMaps):
             self._gaps = g.copy()
         else:
             self._gaps = self.model.cumulative_gaps.copy()
+        cfg = self.config
+        self._start_std = (self._positive(position_std_m, "position_std_m", cfg.reset_prior_translation_m),
+                           self._positive(rotation_std_rad, "rotation_std_rad", cfg.reset_prior_rotation_rad))
+        self._lost_frames = 0
+        self._relocking = False
         self._edge_bias = np.zeros(2)
         self._scale2 = 0.5
         self._up_rack = None
@@ -60,6 +72,15 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._initialized = False
         self._since_detect = 0
         self._detect_short = False
+
+    @staticmethod
+    def _positive(value: float | None, name: str, default: float) -> float:
+        if value is None:
+            return default
+        v = float(value)
+        if not (np.isfinite(v) and v > 0.0):
+            raise InputError(f"{name}: must be positive, got {value}")
+        return v
 
     @property
     def T_rack_cam(self) -> FloatArray:
@@ -177,7 +198,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         except np.linalg.LinAlgError:
             cov_full = np.eye(x.size) * 1e6
         cov = 0.5 * (cov_full[:6, :6] + cov_full[:6, :6].T)
-        n_gap = self._n_gaps if cfg.estimate_gaps else 0
+        n_gap = self._n_gaps if self._gaps_solved() else 0
         gap_std = np.sqrt(np.maximum(np.diag(cov_full)[6 : 6 + n_gap], 0.0)) if n_gap else np.zeros(self._n_gaps)
         # ---- state update
         dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
@@ -193,6 +214,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
             if self._gravity is not None:
                 self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True
+            self._lost_frames = 0
+            self._relocking = False
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
@@ -200,6 +223,14 @@ class RackTracker(TrackerSolve, TrackerMaps):
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
+            self._lost_frames += 1
+            if self._initialized and not cfg.estimate_gaps and 0 < cfg.relock_after_frames <= self._lost_frames:
+                # Lost for a while: search wide again from the last pose, as after a rough reset. Not
+                # with estimated gaps: with a wrong model (gaps confidently wrong, 2026-11-24 stress
+                # bench) the wide search locks onto grating bars and shadows and runs away.
+                self._initialized = False
+                self._start_std = (cfg.relock_prior_translation_m, cfg.relock_prior_rotation_rad)
+                self._relocking = True
             self._ground_uv = np.zeros((0, 2))
             if len(self._texture):
                 self._texture.uv_last = tex_uv

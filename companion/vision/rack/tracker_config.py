@@ -43,7 +43,9 @@ class RackTrackerConfig:
     deviations of the pose given to `reset` (a prior on the first frame; raise them, e.g. to
     0.1 m / 0.05 rad, when the reset pose is rough) and `motion_prior_*`
     those of the constant-velocity prediction (a prior on every later frame): both only matter
-    in weakly observed directions; `estimate_gaps` solves the cumulative gaps too;
+    in weakly observed directions; after `relock_after_frames` consecutive rejected frames (0 =
+    never) the wide first-frame search runs again from the last pose, with the prior
+    `relock_prior_*` in place of the reset prior; `estimate_gaps` solves the cumulative gaps too;
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
@@ -100,6 +102,9 @@ class RackTrackerConfig:
     prior_rate_noise_rad: float = 1e-3
     reset_prior_rotation_rad: float = 0.002
     motion_prior_translation_m: float = 0.03
+    relock_after_frames: int = 3
+    relock_prior_translation_m: float = 0.1
+    relock_prior_rotation_rad: float = 0.02
     motion_prior_rotation_rad: float = 0.01
     estimate_gaps: bool = False
     estimate_edge_bias: bool = True
@@ -133,11 +138,14 @@ class RackTrackerConfig:
                      "init_iterations", "detect_every", "lk_window_px", "template_half_px", "template_iterations"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if self.relock_after_frames < 0:
+            raise InputError(f"relock_after_frames: must be >= 0, got {self.relock_after_frames}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
         if not -1.0 <= self.template_min_ncc <= 1.0:
             raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
-        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px"):
+        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
+                     "relock_prior_translation_m", "relock_prior_rotation_rad"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
 

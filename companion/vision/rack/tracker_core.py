@@ -48,11 +48,16 @@ class TrackerCore:
         self._last_stamp: float | None = None
         self._frames = 0
         self._initialized = False
+        # Standard deviations (m, rad) of the pose the wide first-frame search starts from: the reset
+        # pose's (`reset_prior_*` or the caller's), or the relock prior's after lost frames.
+        self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
+        self._lost_frames = 0
+        self._relocking = False  # a wide search after lost frames: the gaps stay as they were
         self._since_detect = 0
         self._detect_short = False
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
-        self._weights_cache: dict[tuple[bool, int], tuple[FloatArray, FloatArray]] = {}
+        self._weights_cache: dict[tuple[bool, int, tuple[float, float]], tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
         # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
         # converts an attitude prior's standard deviation into the solver's information scale.
@@ -123,6 +128,10 @@ class TrackerCore:
                 a.flags.writeable = False
             self._pipes_key, self._pipes_cached = key, pipes
         return self._pipes_cached
+
+    def _gaps_solved(self) -> bool:
+        """Whether this frame's solve estimates the gaps (not while re-locking after lost frames)."""
+        return bool(self.config.estimate_gaps and self._n_gaps > 0 and not self._relocking)
 
     def _as_gray(self, image: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
         img = np.asarray(image)

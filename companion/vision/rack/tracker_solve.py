@@ -33,8 +33,9 @@ class TrackerSolve(TrackerCore):
     """The IRLS iterations of one frame (see the module docstring)."""
 
     def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
-        """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
-        key = (first, n_par)
+        """Per-iteration damping and anchor information (n_par,) (depend on the config, `first` and the
+        standard deviations of the pose the search starts from, `_start_std`)."""
+        key = (first, n_par, self._start_std)
         cached = self._weights_cache.get(key)
         if cached is not None:
             return cached
@@ -45,8 +46,8 @@ class TrackerSolve(TrackerCore):
         prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
         anchor_info = np.zeros(n_par)
         if first:
-            anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
-            anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
+            anchor_info[:3] = 1.0 / self._start_std[0] ** 2
+            anchor_info[3:6] = 1.0 / self._start_std[1] ** 2
             anchor_info[i_bias : i_bias + 2] = 1.0 / 0.3**2
         else:
             anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
@@ -76,7 +77,7 @@ class TrackerSolve(TrackerCore):
         cfg = self.config
         cam = self.camera
         n_iter = cfg.init_iterations if first else cfg.max_iterations
-        n_gap = self._n_gaps if cfg.estimate_gaps else 0
+        n_gap = self._n_gaps if self._gaps_solved() else 0
         i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
         n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
         has_ground = ground is not None and ground[1].shape[0] > 0 and self._z_g is not None
@@ -103,8 +104,8 @@ class TrackerSolve(TrackerCore):
             if s0.p_cam.shape[0]:
                 depth = median_1d(s0.p_cam[:, 2])
                 range_m = max(cfg.init_search_range_m,
-                              3.0 * (cfg.reset_prior_translation_m + cfg.reset_prior_rotation_rad * depth),
-                              cfg.init_search_range_gaps_m if cfg.estimate_gaps else 0.0)
+                              3.0 * (self._start_std[0] + self._start_std[1] * depth),
+                              cfg.init_search_range_gaps_m if n_gap else 0.0)
                 init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
         for it in range(n_iter):
             it_done = it + 1
@@ -197,7 +198,7 @@ class TrackerSolve(TrackerCore):
         nrm = samples.normal_px[f]
         A = np.zeros((int(f.sum()), n_par))
         A[:, :6] = np.einsum("nij,ni->nj", J6, nrm)  # σ = ξᵀ n (eq. 15)
-        if self.config.estimate_gaps and self._n_gaps:
+        if self._gaps_solved():
             gi = self._pipe_arrays(gaps).gap_index[samples.pipe[f]]
             has = gi >= 0
             Jg = gap_jacobian(samples.J_uv_pcam[f][has], T[:3, :3].T)
@@ -214,7 +215,7 @@ class TrackerSolve(TrackerCore):
         uv, J = self.camera.project_with_jacobian(p_cam)
         A = np.zeros((2 * k, n_par))
         A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
-        if self.config.estimate_gaps and self._n_gaps:
+        if self._gaps_solved():
             gi = pipes.gap_index[self._texture.pipe]
             Jg = gap_jacobian(J, T[:3, :3].T)  # (k, 2)
             for c in range(2):
