@@ -85,6 +85,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         seed=int(args.seed),
         wind=not args.no_wind,
         speed=float(args.speed),
+        appearance=str(args.appearance),
     )
     return run_sim_cli(options)
 
@@ -214,6 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="give up after this many simulated seconds (default: sum of the action timeouts)")
     p.add_argument("--seed", type=int, default=1, help="seed of the wind and the renderer noise")
     p.add_argument("--no-wind", action="store_true", help="fly without Dryden wind")
+    p.add_argument("--appearance", choices=("default", "field"), default="default",
+                   help="the rack's rendering: default, or field (sparse spots, high-contrast ground, JPEG)")
     p.add_argument("--speed", type=float, default=1.0,
                    help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")

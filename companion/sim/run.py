@@ -129,6 +129,7 @@ class SimOptions:
     wind_m_s: float = 2.0
     speed: float = 1.0
     rack_along_pipe_std_m: float | None = None  # None: vision.rack_along_pipe_std_m of the config
+    appearance: str = "default"  # the rack's rendering: "default" (RackScene) or "field" (FieldRackScene)
     config_overrides: dict[str, Any] = field(default_factory=dict)
 
 
@@ -210,7 +211,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                                  flight=FlightParams(takeoff_speed_m_s=0.3))
     async with FakeAutopilot(ap_cfg, clock=clock) as ap:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=ap.url_for_client))
-        base_render = SceneRenderer.from_config(config, camera_model, seed=options.seed)
+        base_render = SceneRenderer.from_config(config, camera_model, seed=options.seed, appearance=options.appearance)
         base_render(ap.truth.T_ned_body)  # warm the renderer's caches before the camera's clock runs
         render = FaultyRender(base_render, clock.now)
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
