@@ -77,3 +77,12 @@ async def test_daemon_options_come_from_the_config(tmp_path: Path) -> None:
         assert d.record_frames and d.flight is not None
         d.flight.flush()
         assert len(list((d.flight.path / "frames").glob("*.png"))) >= 10
+
+
+async def test_the_daemons_rack_tracker_runs_without_ground_points_unless_configured(tmp_path: Path) -> None:
+    async with rig(tmp_path / "default") as r:
+        assert r.daemon.pipeline is not None and r.daemon.pipeline.rack_tracker is not None
+        assert r.daemon.pipeline.rack_tracker.config.ground_points == 0  # the library default is 60
+    async with rig(tmp_path / "asked", overrides={"vision": {"rack_tracker": {"ground_points": 40}}}) as r:
+        assert r.daemon.pipeline is not None and r.daemon.pipeline.rack_tracker is not None
+        assert r.daemon.pipeline.rack_tracker.config.ground_points == 40
