@@ -44,15 +44,13 @@ class FrameInputs:
 
     height_m: camera optical centre above the ground plane (m), None if unknown.
     roll_rad, pitch_rad: attitude of the body at capture (rad).
-    reset_T_ned_body: if set, re-initialise the rack tracker at this body pose (NED) before tracking;
-    reset_position_std_m its position standard deviation (m; None: the tracker's `reset_prior_*`).
+    reset_T_ned_body: if set, re-initialise the rack tracker at this body pose (NED) before tracking.
     """
 
     height_m: float | None
     roll_rad: float
     pitch_rad: float
     reset_T_ned_body: FloatArray | None = None
-    reset_position_std_m: float | None = None
     acquisition: Any | None = None  # `AcquisitionInputs` for an attempt, when the tracker needs one
 
 
@@ -145,17 +143,16 @@ class VisionPipeline:
         """Camera pose in the rack frame for a body pose in NED."""
         return frames.T_rack_cam_from_T_ned_body(T_ned_body, self.T_ned_rack, self.T_body_cam)
 
-    def reset_rack(self, T_ned_body: Any, position_std_m: float | None = None) -> None:
-        """Re-initialise the rack tracker at a body pose in NED (position std in m; None: the tracker's default)."""
+    def reset_rack(self, T_ned_body: Any) -> None:
+        """Re-initialise the rack tracker at a body pose in NED."""
         if self.rack_tracker is not None:
-            std = None if position_std_m is None else max(float(position_std_m), 1e-3)
-            self.rack_tracker.reset(self.T_rack_cam_from(T_ned_body), position_std_m=std)
+            self.rack_tracker.reset(self.T_rack_cam_from(T_ned_body))
 
     def measure(self, image: Any, stamp_s: float, seq: int, inputs: FrameInputs) -> Measurement:
         """Run the configured trackers on one image (worker thread or inline)."""
         t0 = time.perf_counter()
         if inputs.reset_T_ned_body is not None:
-            self.reset_rack(inputs.reset_T_ned_body, inputs.reset_position_std_m)
+            self.reset_rack(inputs.reset_T_ned_body)
         rack_reset = inputs.reset_T_ned_body is not None and self.rack_tracker is not None
         rack = None
         ground = None

@@ -50,7 +50,6 @@ class VisionTask(DaemonState):
                 gz = float(getattr(nf.config, "ground_z_ned_m", 0.0)) if vg is None else float(vg)
                 height = gz - float(est.position_ned_m[2]) - z_cam_body
         reset = None
-        reset_std = None
         if self._rack_reset_pending and self._hold_rack_reseed:
             self._rack_reset_pending = False  # the acquired pose is better than the filter's estimate
         if self._rack_reset_pending and nf is not None:
@@ -58,11 +57,9 @@ class VisionTask(DaemonState):
             pos_std = math.sqrt(max(float(np.max(np.diag(np.asarray(latest.pose_covariance))[:3])), 0.0))
             if math.isfinite(float(latest.stamp_s)) and pos_std < 0.3:
                 reset = np.asarray(latest.T_ned_body)
-                reset_std = pos_std  # the tracker's first search covers three of them
                 self._rack_reset_pending = False
                 self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std)
         return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset,
-                           reset_position_std_m=reset_std,
                            acquisition=self._acquisition_inputs(roll, pitch))
 
     def _acquisition_inputs(self, roll: float, pitch: float) -> Any | None:
