@@ -465,8 +465,8 @@ def test_ground_increment_must_start_at_the_clone() -> None:
     assert f.stats.count("applied_ground") == 2 and f.stats.count("failed_ground") == 2
 
 
-def test_rack_back_after_silence_is_reacquired_with_a_reset_if_needed() -> None:
-    cfg = NavFilterConfig(rack_frames_to_switch_in=3, source_timeout_s=0.3)
+def _on_the_rack(cfg: NavFilterConfig) -> tuple[NavigationFilter, float]:
+    """A static filter that has switched to the rack (5 frames at T0); returns it and the time reached."""
     f = static_filter(cfg)
     T_rack_cam = frames.T_rack_cam_from_T_ned_body(T0, frames.default_T_ned_rack(), frames.default_T_body_cam())
     t = 0.0
@@ -474,6 +474,12 @@ def test_rack_back_after_silence_is_reacquired_with_a_reset_if_needed() -> None:
         t = run_static(f, t, t + 0.05)
         f.add_rack(FakeRack(True, T_rack_cam, RACK_COV), t)
     assert f.source == "rack" and f.reset_counter == 0
+    return f, t
+
+
+def test_rack_back_after_silence_is_reacquired_with_a_reset_if_needed() -> None:
+    cfg = NavFilterConfig(rack_frames_to_switch_in=3, source_timeout_s=0.3)
+    f, t = _on_the_rack(cfg)
     t = run_static(f, t, t + 1.0)  # no frames at all for 1 s: the source stays "rack"
     assert f.source == "rack"
     shifted = se3.make(np.eye(3), np.array([0.0, 0.0, 0.5])) @ T0
@@ -487,13 +493,7 @@ def test_rack_back_after_silence_is_reacquired_with_a_reset_if_needed() -> None:
 def test_a_rack_pose_marked_reset_is_taken_at_once_even_when_the_gate_rejects_it() -> None:
     """Issue #16: an acquired pose (or y from the rack's end) is better than the estimate: a reset."""
     cfg = NavFilterConfig(rack_frames_to_switch_in=3)
-    f = static_filter(cfg)
-    T_rack_cam = frames.T_rack_cam_from_T_ned_body(T0, frames.default_T_ned_rack(), frames.default_T_body_cam())
-    t = 0.0
-    for _ in range(5):
-        t = run_static(f, t, t + 0.05)
-        f.add_rack(FakeRack(True, T_rack_cam, RACK_COV), t)
-    assert f.source == "rack" and f.reset_counter == 0
+    f, t = _on_the_rack(cfg)
     shifted = se3.make(np.eye(3), np.array([0.3, 0.0, 0.0])) @ T0
     T_shifted = frames.T_rack_cam_from_T_ned_body(shifted, frames.default_T_ned_rack(), frames.default_T_body_cam())
     t = run_static(f, t, t + 0.05)
