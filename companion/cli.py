@@ -92,6 +92,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         config_overrides=ground_station_overrides(args),
         start_error=start_error,
         seed_true_pose=bool(args.seed_true_pose),
+        appearance=str(args.appearance),
     )
     return run_sim_cli(options)
 
@@ -221,6 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="give up after this many simulated seconds (default: sum of the action timeouts)")
     p.add_argument("--seed", type=int, default=1, help="seed of the wind and the renderer noise")
     p.add_argument("--no-wind", action="store_true", help="fly without Dryden wind")
+    p.add_argument("--appearance", choices=("default", "field"), default="default",
+                   help="the rack's rendering: default, or field (sparse spots, high-contrast ground, JPEG)")
     p.add_argument("--speed", type=float, default=1.0,
                    help="simulated seconds per wall second (default 1 = real time; < 1 for slow or loaded machines)")
     p.add_argument("--start-error", metavar="M,DEG", default=None,

@@ -21,10 +21,12 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray, check_transform
-from companion.errors import CameraError
+from companion.errors import CameraError, InputError
 from companion.geometry import frames
 
-__all__ = ["FaultyRender", "SceneRenderer", "paper_rack_model"]
+__all__ = ["APPEARANCES", "FaultyRender", "SceneRenderer", "paper_rack_model"]
+
+APPEARANCES = ("default", "field")  # RackScene, FieldRackScene
 
 
 def paper_rack_model() -> Any:
@@ -46,27 +48,36 @@ class SceneRenderer:
         model: Any | None = None,
         seed: int = 0,
         noise_std: float = 2.0,
+        appearance: str = "default",
     ) -> None:
         from companion.sim.rack_scene import RackScene
+        from companion.sim.rack_scene_field import FieldRackScene
 
+        if appearance not in APPEARANCES:
+            raise InputError(f"appearance: expected one of {APPEARANCES}, got {appearance!r}")
         self.T_ned_rack = check_transform(T_ned_rack, "T_ned_rack")
         self.T_body_cam = check_transform(T_body_cam, "T_body_cam")
         self.camera = camera
         self.model = model if model is not None else paper_rack_model()
-        self.scene = RackScene(self.model, seed=seed)
+        # "field": the harsher appearance of issue #14 (sparse spots, high-contrast ground, shadows, JPEG).
+        self.scene: Any = (FieldRackScene(self.model, seed=seed) if appearance == "field"
+                           else RackScene(self.model, seed=seed))
         self.noise_std = float(noise_std)
         self._rng = np.random.default_rng(seed + 1)
         self._lock = threading.Lock()
 
     @classmethod
-    def from_config(cls, config: Any, camera: PinholeCamera, seed: int = 0) -> SceneRenderer:
+    def from_config(
+        cls, config: Any, camera: PinholeCamera, seed: int = 0, appearance: str = "default"
+    ) -> SceneRenderer:
         """From a `CompanionConfig`: rack model file (or the packaged one), `T_ned_rack`, `T_body_cam`."""
         model = None
         if config.rack.model:
             from companion.vision.rack import RackModel
 
             model = RackModel.load(config.rack.model)
-        return cls(config.rack.T_ned_rack, config.mount.T_body_cam, camera, model=model, seed=seed)
+        return cls(config.rack.T_ned_rack, config.mount.T_body_cam, camera, model=model, seed=seed,
+                   appearance=appearance)
 
     def T_rack_cam(self, T_ned_body: Any) -> FloatArray:
         return frames.T_rack_cam_from_T_ned_body(T_ned_body, self.T_ned_rack, self.T_body_cam)

@@ -131,6 +131,7 @@ class SimOptions:
     rack_along_pipe_std_m: float | None = None  # None: vision.rack_along_pipe_std_m of the config
     start_error: Any = None  # companion.sim.start_error.StartError: boot away from the configured start
     seed_true_pose: bool = False  # hand the daemon the true start pose (else the configured one)
+    appearance: str = "default"  # the rack's rendering: "default" (RackScene) or "field" (FieldRackScene)
     config_overrides: dict[str, Any] = field(default_factory=dict)
 
 
@@ -219,7 +220,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
                                  start_east_m=start.east_m, start_yaw_rad=start.yaw_rad)
     async with FakeAutopilot(ap_cfg, clock=clock) as ap:
         config = dataclasses.replace(config, mavlink=dataclasses.replace(config.mavlink, url=ap.url_for_client))
-        base_render = SceneRenderer.from_config(config, camera_model, seed=options.seed)
+        base_render = SceneRenderer.from_config(config, camera_model, seed=options.seed, appearance=options.appearance)
         base_render(ap.truth.T_ned_body)  # warm the renderer's caches before the camera's clock runs
         render = FaultyRender(base_render, clock.now)
         daemon = Daemon(config, clock=clock, options=DaemonOptions(
