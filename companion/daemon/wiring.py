@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -14,8 +15,23 @@ from companion.errors import ConfigError
 
 __all__ = ["DAEMON_RACK_TRACKER", "Wiring"]
 
-# RackTrackerConfig settings of the daemon that differ from the library defaults (config keys override them)
-DAEMON_RACK_TRACKER: dict[str, Any] = {"ground_points": 0}
+# RackTrackerConfig settings of the daemon that differ from the library defaults (config keys override them).
+# The library's defaults since 2026-11-26 are those of the field-robustness work of issue #14 (stress
+# benchmark, vision only); the daemon keeps the tracker settings it has flown on the real ArduCopter
+# SITL and in `companion sim`, where the filter (IMU, re-seeds) covers what they add: no ground points
+# (in the closed loop they degraded the along-pipe estimate, docs/rack.md), the wide first search, the
+# gradient-peak edges, no re-lock of its own (the daemon re-seeds the tracker from its filter).
+DAEMON_RACK_TRACKER: dict[str, Any] = {
+    "ground_points": 0,
+    "init_search_range_m": 0.25,
+    "max_residual_px": 2.0,
+    "texture_min_corner_ratio": 0.0,
+    "edge_profile_px": 0,
+    "edge_silhouette_px": 0,
+    "relock_after_frames": 0,
+    "unobserved_velocity_tau_s": 0.0,
+    "gap_scan": False,
+}
 
 
 class Wiring(DaemonState):
@@ -172,4 +188,5 @@ class Wiring(DaemonState):
             rack_std_floor=rack_std_floor_from_config(cfg.vision),
             rack_along_pipe_std_m=self.rack_along_pipe_std_m,
             acquire=bool(cfg.vision.rack_acquire),
+            rack_attitude_prior_std_rad=math.radians(float(cfg.vision.rack_attitude_prior_std_deg)),
         )

@@ -68,3 +68,36 @@ def test_expected_inner_profile_prefers_the_limb_over_a_stronger_ground_edge() -
     # No reference (zero row): the plain search.
     none = search_edges(img, uv, n, np.array([1.0]), 8, 5.0, inner_ref=np.zeros((1, 8)))
     np.testing.assert_allclose(none.offset_px, plain.offset_px)
+
+
+def _limb_image(edge_x: float, radius_px: float, limb: float, centre: float, ground: float,
+                blur_px: float = 0.8, width: int = 200, height: int = 40) -> np.ndarray:
+    """A cylinder's limb at x = edge_x (pipe on the left): its shading goes from `centre` to `limb`
+    as the square root of the distance from the silhouette (the normal of a cylinder turns that way),
+    the ground right of it; 8x supersampled (pixel area), then blurred (optics)."""
+    xs = (np.arange(width * 8, dtype=np.float64) + 0.5) / 8.0 - 0.5  # pixel-centre convention
+    d = np.clip((edge_x - xs) / radius_px, 0.0, 1.0)
+    row = np.where(xs < edge_x, limb + (centre - limb) * np.sqrt(d), ground)
+    row = row.reshape(width, 8).mean(axis=1)
+    img = np.tile(row, (height, 1)).astype(np.float32)
+    return np.asarray(cv2.GaussianBlur(img, (0, 0), blur_px))
+
+
+def test_silhouette_of_a_shaded_limb_where_the_gradient_peak_is_inside() -> None:
+    # Pale cladding darkening towards its limb over a ground of about the limb's brightness: the
+    # steepest gradient lies inside the pipe; the silhouette fit finds the silhouette itself.
+    from companion.vision.rack.edges import refine_silhouette
+
+    n = np.array([[1.0, 0.0]] * 3)
+    for edge_x in (100.0, 100.3, 100.6):
+        for limb, ground in ((95.0, 110.0), (60.0, 110.0), (120.0, 40.0)):
+            img = _limb_image(edge_x, 40.0, limb, 175.0, ground)
+            uv = np.array([[97.0, 10.0], [99.5, 20.0], [102.0, 30.0]])
+            m = search_edges(img, uv, n, np.zeros(3), 6, 2.0)  # the strongest gradient, either sign
+            assert m.found.all()
+            refined = refine_silhouette(img, uv, n, m.offset_px)
+            np.testing.assert_allclose(uv[:, 0] + refined, edge_x, atol=0.35)  # the gradient peak: up to 2.6 px off
+    # the case that motivates it: the gradient peak is more than a pixel inside
+    img = _limb_image(100.3, 40.0, 95.0, 175.0, 110.0)
+    m = search_edges(img, np.array([[100.0, 20.0]]), np.array([[1.0, 0.0]]), np.array([-1.0]), 8, 2.0)
+    assert 100.0 + m.offset_px[0] < 100.3 - 1.0

@@ -156,3 +156,89 @@ def search_edges(
         strength=np.abs(g_b).astype(np.float64),
         inner=inner,
     )
+
+
+# Candidate silhouette positions tried by `refine_silhouette`, relative to the rounded gradient peak (px).
+_REFINE_STEP_PX = 0.25
+_REFINE_DELTAS = np.arange(-1.5, 3.0 + 1e-9, _REFINE_STEP_PX)
+
+
+@functools.lru_cache(maxsize=8)
+def _silhouette_bases(w_in: int, w_out: int, blur_px: float) -> tuple[FloatArray, FloatArray]:
+    """Offsets j = -w_in..w_out (K,) and orthonormal model bases Q (K, D * 4), four columns per candidate.
+
+    Model of the profile across a cylinder's limb (j along the outward normal, silhouette at d):
+    inside, a + b sqrt(d - j) -- near its silhouette a cylinder's normal turns as the square root of
+    the distance, so any smooth shading of the normal rises (or falls) that way, steepest at the
+    silhouette itself --; outside, the background c + e (j - d). Both are blurred by a Gaussian of
+    `blur_px` (optics, pixel area). The least-squares residual of profile P at candidate d is
+    |P|² - |Q_dᵀ P|² (Q_d an orthonormal basis of the model's columns), so all candidates of all
+    samples cost one matrix product.
+    """
+    j = np.arange(-w_in, w_out + 1, dtype=np.float64)
+    fine = np.linspace(-4.0 * blur_px, 4.0 * blur_px, 81)
+    g = np.exp(-0.5 * (fine / blur_px) ** 2)
+    g /= g.sum()
+    Q = np.empty((j.size, _REFINE_DELTAS.size * 4))
+    for i, d in enumerate(_REFINE_DELTAS):
+        t = (j[:, None] + fine[None, :]) - d
+        inside = t < 0.0
+        cols = (inside * 1.0, np.sqrt(np.maximum(-t, 0.0)), (~inside) * 1.0, np.where(inside, 0.0, t))
+        B = np.stack([(c * g[None, :]).sum(axis=1) for c in cols], axis=1)
+        U, sv, _ = np.linalg.svd(B, full_matrices=False)
+        U[:, sv < 1e-9 * sv[0]] = 0.0  # rank-deficient candidates (silhouette beyond the window)
+        Q[:, 4 * i : 4 * i + 4] = U
+    j.flags.writeable = False
+    Q.flags.writeable = False
+    return j, Q
+
+
+def refine_silhouette(
+    image_f32: np.ndarray[Any, np.dtype[np.float32]],
+    uv: FloatArray,
+    normal: FloatArray,
+    offset_px: FloatArray,
+    inner_px: int = 6,
+    outer_px: int = 5,
+    blur_px: float = 0.9,
+    max_rel_rms: float = 0.0,
+) -> FloatArray:
+    """Silhouette offsets (N,) (px along the outward `normal`) near gradient-peak edges `offset_px`.
+
+    The gradient peak of a shaded limb is not its silhouette: the shading of a cylinder changes
+    fastest just inside it, so on pale cladding over a ground of similar brightness the peak lies
+    1-2 px inside the pipe and moves with the ground's brightness and the view (a bias that
+    differs from limb to limb, which a few parallel pipes turn into a roll / sideways-slide error
+    of about a degree). Here the profile from `inner_px` inside to `outer_px` outside the rounded
+    peak is fitted, for silhouette positions from 1.5 px inside to 3 px outside it in steps of
+    0.25 px, by the limb model of `_silhouette_bases`; the best position (least squares,
+    refined by a parabola) is returned. With `max_rel_rms` > 0 a sample keeps `offset_px` where
+    the fit's rms residual exceeds that fraction of the profile's range. Vectorized over samples: one `cv2.remap` and one matrix product.
+    """
+    n = uv.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    j, Q = _silhouette_bases(int(inner_px), int(outer_px), float(blur_px))
+    p = np.round(np.asarray(offset_px, dtype=np.float64))
+    steps = p[:, None] + j[None, :]  # (N, K)
+    mx = (uv[:, 0:1] + steps * normal[:, 0:1]).astype(np.float32)
+    my = (uv[:, 1:2] + steps * normal[:, 1:2]).astype(np.float32)
+    prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    proj = prof @ Q  # (N, D * 4)
+    sse = np.sum(prof * prof, axis=1)[:, None] - np.sum(np.square(proj).reshape(n, -1, 4), axis=2)
+    best = np.argmin(sse, axis=1)
+    b = np.clip(best, 1, _REFINE_DELTAS.size - 2)
+    rows = np.arange(n)
+    s_m, s_0, s_p = sse[rows, b - 1], sse[rows, b], sse[rows, b + 1]
+    den = s_m - 2.0 * s_0 + s_p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(den > 1e-9, 0.5 * (s_m - s_p) / den, 0.0)
+    frac = np.clip(frac, -0.5, 0.5)
+    out = p + _REFINE_DELTAS[b] + frac * _REFINE_STEP_PX
+    if max_rel_rms > 0.0:
+        # Keep the gradient peak where the limb model does not explain the profile (a grating or a
+        # beam next to the limb): its fit there is arbitrary.
+        rms = np.sqrt(np.maximum(s_0, 0.0) / max(j.size - 4, 1))
+        contrast = np.ptp(prof, axis=1)
+        out = np.where(rms <= max_rel_rms * np.maximum(contrast, 1e-6), out, offset_px)
+    return np.asarray(out)

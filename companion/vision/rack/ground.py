@@ -19,6 +19,8 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.limbs import clip_lines_to_view, limb_lines
+from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import pose_jacobian
 
 
@@ -61,6 +63,58 @@ def ground_rows(
     return A, r.reshape(-1)
 
 
+def pipe_silhouettes(T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays) -> list[FloatArray]:
+    """Image quadrilaterals (4, 2) (pinhole pixels, not clipped to the image) of every pipe in front of the camera.
+
+    Each is bounded by the pipe's two limb lines, clipped to the near plane and to a band of three
+    image sizes around the image, so that a pipe entering the view with one limb still outside it
+    (or both: the camera right over a wide pipe) still masks the ground it covers.
+    """
+    lines = limb_lines(T_rack_cam[:3, 3], pipes)
+    R = T_rack_cam[:3, :3]
+    A = (lines.point - T_rack_cam[:3, 3]) @ R
+    D = lines.direction @ R
+    s0, s1 = clip_lines_to_view(A, D, lines.s_min, lines.s_max, camera,
+                                -float(max(camera.width, camera.height)), 0.1)
+    polys = []
+    for m in range(pipes.radii.size):
+        i, j = 2 * m, 2 * m + 1
+        if not (lines.valid[i] and s0[i] < s1[i] and s0[j] < s1[j]):
+            continue
+        ends = np.stack([A[i] + s0[i] * D[i], A[i] + s1[i] * D[i], A[j] + s1[j] * D[j], A[j] + s0[j] * D[j]])
+        # Pinhole part only: a distortion polynomial is meaningless far outside the image.
+        xn = ends[:, :2] / ends[:, 2:3]
+        uv = np.stack([camera.fx * xn[:, 0] + camera.skew * xn[:, 1] + camera.cx, camera.fy * xn[:, 1] + camera.cy],
+                      axis=1)
+        if np.all(np.isfinite(uv)):
+            polys.append(uv)
+    return polys
+
+
+def ground_mask(shape: tuple[int, int], pipe_polygons: list[FloatArray], margin_px: float) -> np.ndarray[Any, Any]:
+    """uint8 mask (H, W): 255 where the ground may be seen, 0 on the pipes' image regions (grown by
+    `margin_px` on each side) and the image border."""
+    h, w = shape
+    mask = np.zeros((h, w), dtype=np.uint8)
+    b = int(margin_px) + 4
+    mask[b : h - b, b : w - b] = 255
+    grow = max(round(2 * margin_px), 1)
+    for poly in pipe_polygons:
+        cv2.fillConvexPoly(mask, np.rint(poly).astype(np.int32), 0)
+        cv2.polylines(mask, [np.rint(poly).astype(np.int32)], True, 0, grow)
+    return mask
+
+
+def on_ground(uv: FloatArray, mask: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
+    """Which pixels uv (K, 2) fall where `mask` (from `ground_mask`) is set."""
+    h, w = mask.shape[:2]
+    c = np.rint(uv).astype(np.intp)
+    inside = (c[:, 0] >= 0) & (c[:, 0] < w) & (c[:, 1] >= 0) & (c[:, 1] < h)
+    out = np.zeros(uv.shape[0], dtype=bool)
+    out[inside] = mask[c[inside, 1], c[inside, 0]] > 0
+    return out
+
+
 def detect_ground_points(
     gray: np.ndarray[Any, np.dtype[np.uint8]],
     pipe_polygons: list[FloatArray],
@@ -78,13 +132,7 @@ def detect_ground_points(
     h, w = gray.shape[:2]
     if max_new <= 0:
         return np.zeros((0, 2))
-    mask = np.zeros((h, w), dtype=np.uint8)
-    b = int(margin_px) + 4
-    mask[b : h - b, b : w - b] = 255
-    grow = max(round(2 * margin_px), 1)
-    for poly in pipe_polygons:
-        cv2.fillConvexPoly(mask, np.rint(poly).astype(np.int32), 0)
-        cv2.polylines(mask, [np.rint(poly).astype(np.int32)], True, 0, grow)
+    mask = ground_mask((h, w), pipe_polygons, margin_px)
     for q in existing_uv:
         cv2.circle(mask, (round(q[0]), round(q[1])), int(min_distance_px), 0, -1)
     if not np.any(mask):

@@ -23,8 +23,16 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
-from companion.vision.rack.edges import search_edges
-from companion.vision.rack.ground import detect_ground_points, ground_rows, plane_points
+from companion.vision.rack.edges import refine_silhouette, search_edges
+from companion.vision.rack.gap_scan import scan_gaps
+from companion.vision.rack.ground import (
+    detect_ground_points,
+    ground_mask,
+    ground_rows,
+    on_ground,
+    pipe_silhouettes,
+    plane_points,
+)
 from companion.vision.rack.limbs import LimbSamples, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.motion import (
@@ -52,12 +60,21 @@ class RackTrackerConfig:
     the reset prior, and to `init_search_range_gaps_m` when the gaps are estimated; at most
     `init_search_range_px`) and
     shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
-    image blurred in proportion); `edge_threshold`
+    image blurred in proportion); `gap_scan` (with `estimate_gaps`): on the first frame after
+    `reset`, each pipe's shift within `init_search_range_gaps_m` is found first by its limb pair
+    (`gap_scan.scan_gaps`), and the first search then covers `init_search_range_m` only; `edge_threshold`
     the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
     learned inner edge profile that candidates are matched against (`search_edges`, 0 = off),
-    `edge_profile_rate` its per-frame learning rate; `ground_points` the number of ground corners
+    `edge_profile_rate` its per-frame learning rate; `edge_silhouette_px` > 0 moves each found
+    edge from its gradient peak to the silhouette of a fitted limb profile (`refine_silhouette`,
+    that many px inside, one fewer outside; 0 = off) where the fit's rms residual is within
+    `edge_silhouette_max_rms` of the profile's range (elsewhere the peak is kept: a grating or a
+    beam next to the limb, which the limb model does not describe); `ground_points` the number of ground corners
     tracked frame to frame as a second reference (plane z = z_g, height estimated online; see
     `ground.py`; 0 = off), `ground_weight` their rows' weight relative to edge rows,
+    `ground_along_only` lets them inform only the translation along the pipes (and z_g): the limbs
+    alone then fix roll against sideways slide, which a frame-to-frame constraint can only hold
+    (with a wrong z_g, bend) but never correct,
     `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
     random walk allowed to z_g; `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
@@ -73,11 +90,17 @@ class RackTrackerConfig:
     deviations of the pose given to `reset` (a prior on the first frame; raise them, e.g. to
     0.1 m / 0.05 rad, when the reset pose is rough) and `motion_prior_*`
     those of the constant-velocity prediction (a prior on every later frame): both only matter
-    in weakly observed directions; `estimate_gaps` solves the cumulative gaps too;
+    in weakly observed directions; after `relock_after_frames` consecutive rejected frames (0 =
+    never) the wide first-frame search runs again from the last pose, with `relock_prior_*` in
+    place of the reset prior (not with `estimate_gaps`); `estimate_gaps` solves the cumulative gaps too;
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
-    `velocity_prediction` enables the constant-velocity prediction. `prior_rate_noise_rad`: the
+    `velocity_prediction` enables the constant-velocity prediction; `unobserved_velocity_tau_s`
+    (s, 0 = off) on frames where nothing observes the translation along the pipes (fewer than
+    three texture and ground points) that component of the velocity is not taken from the pose
+    change (which there is only the prediction itself, so an error would persist and integrate)
+    but decays from its last value with this time constant. `prior_rate_noise_rad`: the
     per-frame random walk between the vision's attitude and the filtered attitude prior.
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
@@ -99,14 +122,18 @@ class RackTrackerConfig:
     samples_per_limb: int = 32
     search_range_px: int = 12
     init_search_range_px: int = 128
-    init_search_range_m: float = 0.25
+    init_search_range_m: float = 0.04
     init_search_range_gaps_m: float = 0.25
+    gap_scan: bool = True
     init_iterations: int = 16
     init_shrink: float = 0.8
     edge_threshold: float = 8.0
-    edge_profile_px: int = 0
-    ground_points: int = 0
+    edge_profile_px: int = 8
+    edge_silhouette_px: int = 6
+    edge_silhouette_max_rms: float = 0.05
+    ground_points: int = 60
     ground_weight: float = 1.0
+    ground_along_only: bool = False
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
     edge_profile_rate: float = 0.1
@@ -131,10 +158,14 @@ class RackTrackerConfig:
     reset_prior_rotation_rad: float = 0.002
     motion_prior_translation_m: float = 0.03
     motion_prior_rotation_rad: float = 0.01
+    relock_after_frames: int = 3
+    relock_prior_translation_m: float = 0.1
+    relock_prior_rotation_rad: float = 0.02
     estimate_gaps: bool = False
     estimate_edge_bias: bool = True
     edge_bias_rate_px: float = 0.02
     velocity_prediction: bool = True
+    unobserved_velocity_tau_s: float = 0.3
     max_texture_points: int = 50
     texture_weight: float = 2.0
     detect_every: int = 4
@@ -144,14 +175,14 @@ class RackTrackerConfig:
     texture_refine_obs: int = 20
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
-    texture_min_corner_ratio: float = 0.0
+    texture_min_corner_ratio: float = 10.0
     texture_templates: bool = True
     template_half_px: int = 5
     template_iterations: int = 2
     template_min_ncc: float = 0.5
     min_edge_points: int = 20
     min_inlier_fraction: float = 0.35
-    max_residual_px: float = 2.0
+    max_residual_px: float = 3.0
     max_condition: float = 1e7
     inlier_px: float = 2.0
     covariance_inflation: float = 4.0
@@ -163,11 +194,14 @@ class RackTrackerConfig:
                      "init_iterations", "detect_every", "lk_window_px", "template_half_px", "template_iterations"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if self.relock_after_frames < 0:
+            raise InputError(f"relock_after_frames: must be >= 0, got {self.relock_after_frames}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
         if not -1.0 <= self.template_min_ncc <= 1.0:
             raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
-        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px"):
+        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
+                     "relock_prior_translation_m", "relock_prior_rotation_rad"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
 
@@ -205,6 +239,16 @@ class RackEstimate:
     edge_bias_px: FloatArray = field(default_factory=lambda: np.zeros(2))
 
 
+def _positive(value: float | None, name: str, default: float) -> float:
+    """`value` as a positive finite float, or `default` for None; InputError naming `name` otherwise."""
+    if value is None:
+        return default
+    v = float(value)
+    if not (np.isfinite(v) and v > 0.0):
+        raise InputError(f"{name}: must be positive, got {value}")
+    return v
+
+
 def _readonly(a: FloatArray) -> FloatArray:
     a = np.array(a, dtype=np.float64, copy=True)
     a.flags.writeable = False
@@ -237,11 +281,16 @@ class RackTracker:
         self._last_stamp: float | None = None
         self._frames = 0
         self._initialized = False
+        # Standard deviations (m, rad) of the pose the wide first-frame search starts from: the reset
+        # pose's (`reset_prior_*` or the caller's), or the re-lock prior's after rejected frames.
+        self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
+        self._lost_frames = 0
+        self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
         self._since_detect = 0
         self._detect_short = False
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
-        self._weights_cache: dict[tuple[bool, int], tuple[FloatArray, FloatArray]] = {}
+        self._weights_cache: dict[tuple[bool, int, tuple[float, float]], tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
         # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
         # converts an attitude prior's standard deviation into the solver's information scale.
@@ -254,9 +303,20 @@ class RackTracker:
         self._reset_ground()
 
     # ------------------------------------------------------------------ public API
-    def reset(self, T_rack_cam: Any, cumulative_gaps: Any = None) -> None:
-        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity."""
+    def reset(
+        self, T_rack_cam: Any, cumulative_gaps: Any = None, position_std_m: float | None = None,
+        rotation_std_rad: float | None = None,
+    ) -> None:
+        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity.
+
+        `position_std_m` / `rotation_std_rad`: how far off that pose may be (1 sigma, m / rad; default
+        the config's `reset_prior_*`); they set the first frame's prior and its search range.
+        """
         self._T = check_transform(T_rack_cam, "T_rack_cam").copy()
+        cfg = self.config
+        self._start_std = (_positive(position_std_m, "position_std_m", cfg.reset_prior_translation_m),
+                           _positive(rotation_std_rad, "rotation_std_rad", cfg.reset_prior_rotation_rad))
+        self._lost_frames = 0
         if cumulative_gaps is not None:
             g = np.asarray(cumulative_gaps, dtype=np.float64).ravel()
             if g.size != self._n_gaps:
@@ -318,6 +378,10 @@ class RackTracker:
         T_pred = T.copy()
         self._gravity = None if prior is None else self._fuse_gravity(prior[0], prior[1], T_pred)
         gaps = self._gaps.copy()
+        self._gaps_scanned = False
+        if first and cfg.estimate_gaps and cfg.gap_scan and self._frames == 0 and gaps.size:
+            gaps = scan_gaps(T, cam, self._pipe_arrays(gaps), gaps, img_raw, cfg.init_search_range_gaps_m).gaps
+            self._gaps_scanned = True
         pipes = self._pipe_arrays(gaps)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
         tex_uv = np.zeros((0, 2))
@@ -402,7 +466,15 @@ class RackTracker:
         dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
         if ok:
             if dt_s is not None and 0.0 < dt_s <= 0.5:
-                self._velocity = se3.log(se3.inverse(self._T) @ T) / dt_s
+                velocity = se3.log(se3.inverse(self._T) @ T) / dt_s
+                n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
+                if cfg.unobserved_velocity_tau_s > 0 and n_tex + n_ground < 3:
+                    # Along the pipes the pose only followed the prediction: keep the last observed
+                    # speed there, fading, instead of re-deriving it from itself.
+                    u = T[:3, :3][1, :]  # the rack's +y in the camera frame
+                    decay = float(np.exp(-dt_s / cfg.unobserved_velocity_tau_s))
+                    velocity[:3] += (decay * float(self._velocity[:3] @ u) - float(velocity[:3] @ u)) * u
+                self._velocity = velocity
             else:
                 self._velocity = np.zeros(6)
             self._T = T
@@ -412,6 +484,7 @@ class RackTracker:
             if self._gravity is not None:
                 self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True
+            self._lost_frames = 0
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
@@ -419,6 +492,13 @@ class RackTracker:
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
+            self._lost_frames += 1
+            if self._initialized and not cfg.estimate_gaps and 0 < cfg.relock_after_frames <= self._lost_frames:
+                # Rejected for a while: search wide again from the last pose, as after a rough reset (without
+                # it one lost stretch loses the rack for good). Not with estimated gaps: on a wrong model the
+                # wide search locks onto grating bars and shadows and runs away (stress bench, 2026-11-24).
+                self._initialized = False
+                self._start_std = (cfg.relock_prior_translation_m, cfg.relock_prior_rotation_rad)
             self._ground_uv = np.zeros((0, 2))
             if len(self._texture):
                 self._texture.uv_last = tex_uv
@@ -497,7 +577,7 @@ class RackTracker:
 
     def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
         """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
-        key = (first, n_par)
+        key = (first, n_par, self._start_std)
         cached = self._weights_cache.get(key)
         if cached is not None:
             return cached
@@ -508,8 +588,8 @@ class RackTracker:
         prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
         anchor_info = np.zeros(n_par)
         if first:
-            anchor_info[:3] = 1.0 / cfg.reset_prior_translation_m**2
-            anchor_info[3:6] = 1.0 / cfg.reset_prior_rotation_rad**2
+            anchor_info[:3] = 1.0 / self._start_std[0] ** 2
+            anchor_info[3:6] = 1.0 / self._start_std[1] ** 2
             anchor_info[i_bias : i_bias + 2] = 1.0 / 0.3**2
         else:
             anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
@@ -549,7 +629,10 @@ class RackTracker:
         if has_ground:
             prior, anchor_info = prior.copy(), anchor_info.copy()
             prior[i_z] = 1.0
-            anchor_info[i_z] = 1.0 / self._z_g_var
+            # In the solver's information scale (the posterior is inv(H) * scale2 * inflation, see the
+            # covariance): with 1 / var here a frame that does not observe z_g multiplied its variance
+            # by scale2 * inflation (~2-4 on textured grounds), and z_g wandered off by metres.
+            anchor_info[i_z] = self._scale2 * cfg.covariance_inflation / self._z_g_var
         pipes = self._pipe_arrays(gaps)
         # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
         tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
@@ -566,8 +649,8 @@ class RackTracker:
             if s0.p_cam.shape[0]:
                 depth = median_1d(s0.p_cam[:, 2])
                 range_m = max(cfg.init_search_range_m,
-                              3.0 * (cfg.reset_prior_translation_m + cfg.reset_prior_rotation_rad * depth),
-                              cfg.init_search_range_gaps_m if cfg.estimate_gaps else 0.0)
+                              3.0 * (self._start_std[0] + self._start_std[1] * depth),
+                              cfg.init_search_range_gaps_m if cfg.estimate_gaps and not self._gaps_scanned else 0.0)
                 init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
         for it in range(n_iter):
             it_done = it + 1
@@ -587,7 +670,12 @@ class RackTracker:
             meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
                                 tangent_offset_px=cfg.edge_tangent_px,
                                 inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
-            A_e, r_e, f = self._edge_rows(samples, meas.offset_px, meas.found, T, gaps, n_par)
+            offset_px = meas.offset_px
+            if cfg.edge_silhouette_px > 0 and not (first and rng_px > 2 * cfg.search_range_px):
+                offset_px = refine_silhouette(img_raw, samples.uv, samples.normal_px, offset_px,
+                                              cfg.edge_silhouette_px, cfg.edge_silhouette_px - 1,
+                                              max_rel_rms=cfg.edge_silhouette_max_rms)
+            A_e, r_e, f = self._edge_rows(samples, offset_px, meas.found, T, gaps, n_par)
             if cfg.estimate_edge_bias:
                 side = samples.limb[f] % 2
                 A_e[np.arange(side.size), i_bias + side] = 1.0
@@ -605,6 +693,10 @@ class RackTracker:
                 A_g7, r_g = ground_rows(T, cam, X, dXdz, ground[2])
                 A_g = np.zeros((r_g.size, n_par))
                 A_g[:, :6] = A_g7[:, :6]
+                if cfg.ground_along_only:
+                    e_y = np.zeros(6)
+                    e_y[:3] = T[:3, :3][1, :]  # the rack's +y in the camera frame (translation part)
+                    A_g[:, :6] = np.outer(A_g[:, :6] @ e_y, e_y)
                 A_g[:, i_z] = A_g7[:, 6]
                 A = np.vstack([A, A_g])
                 r = np.concatenate([r, r_g])
@@ -745,6 +837,10 @@ class RackTracker:
             cur = np.asarray(cv2.convertScaleAbs(gray, alpha=m_prev / m_cur), dtype=np.uint8)
         uv, ok = track_points(self._prev_gray, cur, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
         ok &= fin & self.camera.in_image(uv, 4.0)
+        # Points a pipe moves over between the frames (parallax; a pipe entering the view) would be
+        # tracked on its cladding: keep those clear of the pipes at the predicted pose.
+        polygons = pipe_silhouettes(T_pred, self.camera, self._pipe_arrays(self._gaps))
+        ok &= on_ground(uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))
         return self._ground_o, self._ground_d[ok], uv[ok]
 
     def _update_ground(
@@ -757,7 +853,12 @@ class RackTracker:
         keep_uv = np.zeros((0, 2))
         i_z = int(last["i_z"])
         if i_z >= 0:
-            self._z_g = float(last["z_g"])
+            # The ground lies below the pipes' support plane, and it does not move: a frame's estimate may
+            # move z_g by at most half its standard deviation (a few bad ground points, or a roll / slide
+            # error leaking into it, otherwise carry it metres within a second: stress bench, p3 fast).
+            z_prev = float(self._z_g) if self._z_g is not None else float(last["z_g"])
+            step = max(0.02, 0.5 * float(np.sqrt(self._z_g_var)))
+            self._z_g = min(float(np.clip(float(last["z_g"]), z_prev - step, z_prev + step)), 0.0)
             # Posterior variance plus a small random walk (the ground is not flat everywhere).
             self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
             n_et = int(last["n_et"])
@@ -766,6 +867,12 @@ class RackTracker:
             ground_uv = last.get("ground_uv")
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
                 keep_uv = ground_uv[ok]
+        polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
+        if keep_uv.shape[0]:
+            # A pipe sweeps over the ground next to it as the camera moves (parallax): a ground point at
+            # its limb is tracked onto the pipe's cladding and pulls z_g up towards the pipes. Drop
+            # points that come within the margin of a pipe.
+            keep_uv = keep_uv[on_ground(keep_uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))]
         if self._z_g is None:
             # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
             top = 2.0 * float(np.max(self.model.radii))
@@ -774,7 +881,7 @@ class RackTracker:
         need = cfg.ground_points - keep_uv.shape[0]
         new = np.zeros((0, 2))
         if need >= max(3, cfg.ground_points // 5):
-            new = detect_ground_points(gray, self._pipe_polygons(last["samples"]), keep_uv, need,
+            new = detect_ground_points(gray, polygons, keep_uv, need,
                                        cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
         uv = np.vstack([keep_uv, new])
         self._ground_uv = uv

@@ -1,0 +1,127 @@
+"""First-frame search for the pipes' gaps: each pipe's shift across the rack, by its two limbs at once.
+
+With a model whose gaps are wrong by decimetres, the tracker's coarse-to-fine first search has to
+look that far for every limb, and over a grating or painted lines parallel to the pipes it finds a
+bar before the limb (stress bench, 2026-11-24: the fourth pipe of the wrong-gap rack locked 22 cm
+off for good). A pipe, though, is a *pair* of edges at the distance its width gives, both moving
+together when the pipe shifts along rack x: this module scores every shift of each pipe on a
+grid by the weaker of its two limbs' mean gradients, which a single bar or line cannot satisfy.
+Pure function, vectorized over samples and shifts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.model import PipeArrays
+
+
+@dataclass(frozen=True)
+class GapScan:
+    """Cumulative gaps (m) after the scan, and per gap the best score (grey levels per 2 px; 0: not scanned)."""
+
+    gaps: FloatArray
+    score: FloatArray
+
+
+def scan_gaps(
+    T_rack_cam: FloatArray,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    gaps: FloatArray,
+    image_f32: np.ndarray[Any, np.dtype[np.float32]],
+    range_m: float,
+    step_m: float = 0.005,
+    samples_per_limb: int = 24,
+    min_score: float = 3.0,
+    margin_px: float = 6.0,
+) -> GapScan:
+    """Shift each parallel pipe that a gap moves (all but the first) by -range_m..range_m along rack x.
+
+    `T_rack_cam` the camera pose (rack frame), `pipes` the pipes at the current cumulative `gaps`
+    (m, shape (n-1,)), `image_f32` the gray image. For a shift s the limb samples move along their
+    normals by s times their image motion per metre of rack x (first order); the profile across each
+    sample is read once (blurred by 1.5 px, one `cv2.remap`) and interpolated at every shift. A
+    pipe's score at s is min(|mean gradient of its left limb|, |... right limb|) (either polarity,
+    but consistent along each limb); the best shift is taken when it reaches `min_score` and both
+    limbs have at least 4 samples in view, else that gap is kept.
+    """
+    out = np.asarray(gaps, dtype=np.float64).copy()
+    score_out = np.zeros(out.size)
+    samples = sample_limbs(T_rack_cam, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
+    n = samples.uv.shape[0]
+    if n == 0 or out.size == 0:
+        return GapScan(out, score_out)
+    e_x_cam = T_rack_cam[:3, :3][0, :]  # the rack's +x in the camera frame
+    duv_ds = samples.J_uv_pcam @ e_x_cam  # (N, 2) px per metre of the pipe's shift
+    a = np.sum(duv_ds * samples.normal_px, axis=1)  # along each sample's normal
+    shifts = np.arange(-range_m, range_m + 0.5 * step_m, step_m)
+    K = int(np.ceil(np.max(np.abs(a)) * range_m)) + 2
+    k = np.arange(-K - 1, K + 2, dtype=np.float32)
+    nrm = samples.normal_px.astype(np.float32)
+    mx = samples.uv[:, 0:1].astype(np.float32) + k[None, :] * nrm[:, 0:1]
+    my = samples.uv[:, 1:2].astype(np.float32) + k[None, :] * nrm[:, 1:2]
+    smooth = np.asarray(cv2.GaussianBlur(image_f32, (0, 0), 1.5), dtype=np.float32)
+    prof = cv2.remap(smooth, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    g = prof[:, 2:] - prof[:, :-2]  # (N, 2K+1) at k = -K..K
+    pos = np.clip(a[:, None] * shifts[None, :] + K, 0.0, 2.0 * K - 1e-6)  # fractional index (N, S)
+    i0 = np.floor(pos).astype(np.intp)
+    f = pos - i0
+    rows = np.arange(n)[:, None]
+    gs = (1.0 - f) * g[rows, i0] + f * g[rows, np.minimum(i0 + 1, 2 * K)]
+    # Score table (gaps, shifts); gaps whose pipe is not seen well keep a flat zero row.
+    table = np.zeros((out.size, shifts.size))
+    seen = np.zeros(out.size, dtype=bool)
+    for m in np.unique(samples.pipe):
+        gi = int(pipes.gap_index[m])
+        if gi < 0:
+            continue
+        left = samples.limb == 2 * m
+        right = samples.limb == 2 * m + 1
+        if left.sum() < 4 or right.sum() < 4:
+            continue
+        table[gi] = np.minimum(np.abs(gs[left].mean(axis=0)), np.abs(gs[right].mean(axis=0)))
+        seen[gi] = True
+    table[table < min_score] = 0.0
+    pick = _ordered_best(out, shifts, table - 1e-6 * np.abs(shifts)[None, :])  # ties: the model's gap
+    for g_idx in np.flatnonzero(seen & (table[np.arange(out.size), pick] > 0.0)).tolist():
+        out[g_idx] = out[g_idx] + shifts[pick[g_idx]]
+        score_out[g_idx] = table[g_idx, pick[g_idx]]
+    return GapScan(out, score_out)
+
+
+def _ordered_best(gaps: FloatArray, shifts: FloatArray, table: FloatArray) -> np.ndarray[Any, np.dtype[np.intp]]:
+    """Shift index per gap maximizing the summed score with non-decreasing cumulative gaps (no overlap).
+
+    Dynamic programming over the gaps in order: the best total for gap k at shift j is its score plus
+    the best total of gap k-1 over the shifts that leave d̄_{k-1} <= d̄_k. Without this a pipe can
+    take its neighbour's limbs (widths differ by a few centimetres only).
+    """
+    n, S = table.shape
+    value = gaps[:, None] + shifts[None, :]  # candidate cumulative gaps (n, S)
+    total = table[0].copy()
+    back = np.zeros((n, S), dtype=np.intp)
+    for k in range(1, n):
+        order = np.argsort(value[k - 1])
+        run_best = np.maximum.accumulate(total[order])
+        vals = total[order]
+        run_arg = order[np.maximum.accumulate(np.where(vals >= run_best, np.arange(S), 0))]
+        # last candidate of gap k-1 with value <= value[k, j]
+        idx = np.searchsorted(value[k - 1][order], value[k], side="right") - 1
+        ok = idx >= 0
+        new = np.full(S, -np.inf)
+        new[ok] = table[k, ok] + run_best[idx[ok]]
+        back[k, ok] = run_arg[idx[ok]]
+        total = new
+    pick = np.zeros(n, dtype=np.intp)
+    pick[-1] = int(np.argmax(total))
+    for k in range(n - 1, 0, -1):
+        pick[k - 1] = back[k, pick[k]]
+    return pick

@@ -1,0 +1,74 @@
+"""RackTracker: reset with a stated uncertainty, re-locking after lost frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.camera import PinholeCamera
+from companion.errors import InputError
+from companion.geometry import se3, so3
+from companion.sim.rack_scene import RackScene
+from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+
+CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+MODEL = RackModel.parallel(radii=[0.15, 0.2, 0.15, 0.175], gaps=[0.1] * 3, length=10.0)
+
+
+@pytest.fixture(scope="module")
+def scene() -> RackScene:
+    return RackScene(MODEL, seed=3)
+
+
+def _pos_err(est_T: np.ndarray, T: np.ndarray) -> float:
+    """Position error across the pipes and in height (m): the limbs do not see the along-pipe position."""
+    return float(np.linalg.norm((est_T[:3, 3] - T[:3, 3])[[0, 2]]))
+
+
+def test_reset_std_widens_the_first_search(scene: RackScene) -> None:
+    T_true = se3.make(so3.exp([0.01, -0.01, 0.1]) @ R_DOWN, [0.9, 4.0, 2.4])
+    img = scene.render(T_true, CAM, noise_std=3.0, rng=np.random.default_rng(0))
+    T_off = T_true @ se3.exp([0.08, -0.03, 0.0, 0.0, 0.0, 0.0])  # 8.5 cm off, the default prior says 1 cm
+    errs = {}
+    for std in (None, 0.1):
+        tr = RackTracker(MODEL, CAM, RackTrackerConfig(init_search_range_m=0.04))
+        tr.reset(T_off, position_std_m=std)
+        est = tr.track(img, 0.0)
+        for k in range(1, 3):
+            est = tr.track(img, 0.04 * k)
+        errs[std] = _pos_err(est.T_rack_cam, T_true) if est.ok else np.inf
+    assert errs[0.1] < 0.01, errs
+    assert errs[None] > 0.02, errs  # the default search (4 cm) does not reach it
+
+
+def test_reset_std_input_errors() -> None:
+    tr = RackTracker(MODEL, CAM)
+    with pytest.raises(InputError, match="position_std_m"):
+        tr.reset(se3.make(R_DOWN, [0.9, 4.0, 2.4]), position_std_m=0.0)
+    with pytest.raises(InputError, match="rotation_std_rad"):
+        tr.reset(se3.make(R_DOWN, [0.9, 4.0, 2.4]), rotation_std_rad=float("nan"))
+    with pytest.raises(InputError, match="relock_after_frames"):
+        RackTrackerConfig(relock_after_frames=-1)
+
+
+@pytest.mark.parametrize("relock_after", [3, 0])
+def test_relocks_after_lost_frames(scene: RackScene, relock_after: int) -> None:
+    """Blank frames while the camera slides 12 cm: with re-locking the rack is found again, without it not."""
+    tr = RackTracker(MODEL, CAM, RackTrackerConfig(relock_after_frames=relock_after, init_search_range_m=0.04))
+    rng = np.random.default_rng(4)
+    T0 = se3.make(R_DOWN, [0.9, 4.0, 2.4])
+    tr.reset(T0)
+    for k in range(3):
+        assert tr.track(scene.render(T0, CAM, noise_std=3.0, rng=rng), 0.04 * k).ok
+    blank = np.full((CAM.height, CAM.width), 120, dtype=np.uint8)
+    for k in range(3, 8):
+        assert not tr.track(blank, 0.04 * k).ok
+    T1 = se3.make(R_DOWN, [1.02, 4.03, 2.4])
+    ests = [tr.track(scene.render(T1, CAM, noise_std=3.0, rng=rng), 0.04 * k) for k in range(8, 13)]
+    err = _pos_err(ests[-1].T_rack_cam, T1)
+    if relock_after:
+        assert ests[-1].ok and err < 0.01, (ests[-1].status, err)
+    else:
+        assert not ests[-1].ok or err > 0.05, (ests[-1].status, err)
+
