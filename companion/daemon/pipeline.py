@@ -43,7 +43,7 @@ class FrameInputs:
     """Vehicle state sampled on the event loop when a frame is handed to the vision worker.
 
     height_m: camera optical centre above the ground plane (m), None if unknown.
-    roll_rad, pitch_rad: attitude of the body at capture (rad).
+    roll_rad, pitch_rad: attitude of the body at capture (rad); attitude_known: they are the autopilot's.
     reset_T_ned_body: if set, re-initialise the rack tracker at this body pose (NED) before tracking.
     """
 
@@ -51,6 +51,7 @@ class FrameInputs:
     roll_rad: float
     pitch_rad: float
     reset_T_ned_body: FloatArray | None = None
+    attitude_known: bool = False  # roll_rad / pitch_rad come from the autopilot (else they are placeholders)
     acquisition: Any | None = None  # `AcquisitionInputs` for an attempt, when the tracker needs one
 
 
@@ -96,6 +97,7 @@ class VisionPipeline:
         rack_along_pipe_std_m: float = 0.0,
         ground_pipes_in_view_rel_std: float = 1.0,
         acquire: bool = True,
+        rack_attitude_prior_std_rad: float = 0.0,
     ) -> None:
         if source not in SOURCES:
             raise ConfigError(f"vision.source: must be one of {SOURCES}, got {source!r}")
@@ -108,6 +110,8 @@ class VisionPipeline:
         self.rack_covariance_floor: FloatArray = np.diag(floor**2)
         self.rack_along_pipe_std_m = float(rack_along_pipe_std_m)
         self.ground_pipes_in_view_rel_std = float(ground_pipes_in_view_rel_std)
+        # the autopilot's gravity direction as the rack tracker's attitude prior (0: vision only)
+        self.rack_attitude_prior_std_rad = float(rack_attitude_prior_std_rad)
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
         self.acquirer: Any | None = None  # `RackAcquirer` when acquisition is on (vision.rack_acquire)
@@ -148,6 +152,20 @@ class VisionPipeline:
         if self.rack_tracker is not None:
             self.rack_tracker.reset(self.T_rack_cam_from(T_ned_body))
 
+    def _attitude_prior(self, inputs: FrameInputs) -> dict[str, Any]:
+        """`RackTracker.track`'s attitude prior from the autopilot's roll and pitch (empty when off or unknown).
+
+        The tracker uses only the gravity direction of `R_prior` (R_rack_cam), so the heading is left at
+        zero: for a level rack (T_ned_rack a turn about NED down) gravity in the camera frame does not
+        depend on it. Limbs of a few parallel pipes hardly tell a roll about the pipes from a slide across
+        them; gravity does.
+        """
+        if self.rack_attitude_prior_std_rad <= 0.0 or not inputs.attitude_known:
+            return {}
+        R_ned_body = frames.rotation_from_euler_zyx(inputs.roll_rad, inputs.pitch_rad, 0.0)
+        R_rack_cam = self.T_ned_rack[:3, :3].T @ R_ned_body @ self.T_body_cam[:3, :3]
+        return {"R_prior": R_rack_cam, "R_prior_std_rad": self.rack_attitude_prior_std_rad}
+
     def measure(self, image: Any, stamp_s: float, seq: int, inputs: FrameInputs) -> Measurement:
         """Run the configured trackers on one image (worker thread or inline)."""
         t0 = time.perf_counter()
@@ -169,7 +187,7 @@ class VisionPipeline:
         if self.rack_tracker is not None:
             # the tracker keeps running while acquiring: the daemon's re-seed from the filter stays the first
             # way back (it works where acquisition cannot, e.g. on the deck right over the pipes)
-            rack = self.rack_tracker.track(image, stamp_s)
+            rack = self.rack_tracker.track(image, stamp_s, **self._attitude_prior(inputs))
             if acq is not None:
                 acq.after_track(bool(rack.ok))
                 ok = bool(rack.ok)

@@ -35,6 +35,7 @@ class VisionTask(DaemonState):
         link = self.link
         state = link.state if link is not None else None
         roll = pitch = 0.0
+        attitude_known = state is not None and state.attitude_rpy_rad is not None
         if state is not None and state.attitude_rpy_rad is not None:
             roll, pitch = float(state.attitude_rpy_rad[0]), float(state.attitude_rpy_rad[1])
         height = None
@@ -60,7 +61,7 @@ class VisionTask(DaemonState):
                 self._rack_reset_pending = False
                 self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std)
         return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset,
-                           acquisition=self._acquisition_inputs(roll, pitch))
+                           attitude_known=attitude_known, acquisition=self._acquisition_inputs(roll, pitch))
 
     def _acquisition_inputs(self, roll: float, pitch: float) -> Any | None:
         """The vehicle's prior for a rack acquisition, when the pipeline is acquiring (else None)."""
