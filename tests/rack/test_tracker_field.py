@@ -35,16 +35,17 @@ def test_pipe_silhouettes_mask_a_pipe_whose_limbs_are_outside_the_image() -> Non
 
 
 def test_along_pipe_speed_that_nothing_observes_fades() -> None:
-    """Without texture (nor ground points) the limbs do not see the motion along the pipes: a stray speed there (say, left
-    by the last texture point leaving the view) fades with `unobserved_velocity_tau_s` instead of
-    carrying the pose away at that speed."""
+    """Without texture (nor ground points) the limbs do not see the motion along the pipes: a stray
+    speed there (say, left by the last texture point leaving the view) fades with
+    `unobserved_velocity_tau_s` instead of carrying the pose away at that speed."""
     scene = RackScene(MODEL, seed=2)
     T = se3.make(so3.exp([0.0, 0.0, 0.05]) @ R_DOWN, [0.9, 4.0, 2.4])
     rng = np.random.default_rng(1)
     imgs = [scene.render(T, CAM, noise_std=3.0, rng=rng) for _ in range(2)]
     drift = {}
     for tau in (0.0, 0.3):
-        tr = RackTracker(MODEL, CAM, RackTrackerConfig(max_texture_points=0, ground_points=0, unobserved_velocity_tau_s=tau))
+        cfg = RackTrackerConfig(max_texture_points=0, ground_points=0, unobserved_velocity_tau_s=tau)
+        tr = RackTracker(MODEL, CAM, cfg)
         tr.reset(T)
         for k in range(3):
             assert tr.track(imgs[k % 2], 0.04 * k).ok

@@ -213,7 +213,8 @@ def refine_silhouette(
     peak is fitted, for silhouette positions from 1.5 px inside to 3 px outside it in steps of
     0.25 px, by the limb model of `_silhouette_bases`; the best position (least squares,
     refined by a parabola) is returned. With `max_rel_rms` > 0 a sample keeps `offset_px` where
-    the fit's rms residual exceeds that fraction of the profile's range. Vectorized over samples: one `cv2.remap` and one matrix product.
+    the fit's rms residual exceeds that fraction of the profile's range. Vectorized over samples:
+    one `cv2.remap` and one matrix product.
     """
     n = uv.shape[0]
     if n == 0:
