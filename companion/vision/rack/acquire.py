@@ -252,12 +252,14 @@ def _propose(
         k = len(dirs)
         dirs.append(di)
         tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
-        for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
-                                cfg.max_swept_hypotheses, cfg.distinct_m):
-            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
-                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
-            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
+        swept = sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                              di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
+                              cfg.max_swept_hypotheses, cfg.distinct_m)
+        refined = refine_on_peaks(di.profile, swept, x_axes, radii, th_range, prior.height_m, prior.height_std_m,
+                                  cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
+        for sh, (x, z, a) in zip(swept, refined, strict=True):
+            cands.append(_Candidate(_pose_from_section(float(x), float(z), float(a), sh.sign, limbs, prior.y_m),
+                                    sh.sign, 0, sh.score, k))
         if limbs.theta.size >= 2:
             for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
                                         di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,

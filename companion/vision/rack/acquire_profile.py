@@ -25,7 +25,7 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.vision.rack.acquire_lines import LimbClusters
-from companion.vision.rack.acquire_match import predict_limb_angles, refine_section
+from companion.vision.rack.acquire_match import predict_limb_angles, refine_sections
 
 GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
 
@@ -179,29 +179,29 @@ def sweep_section(
 
 
 def refine_on_peaks(
-    profile: PencilProfile, limbs: LimbClusters, h: SweptHypothesis, x_axes: FloatArray, radii: FloatArray,
+    profile: PencilProfile, hyps: list[SweptHypothesis], x_axes: FloatArray, radii: FloatArray,
     theta_range: tuple[float, float], height_m: float, height_std_m: float, alpha_std_rad: float, tol_rad: float,
     angle_std_rad: float,
-) -> tuple[float, float, float]:
-    """(x, z, alpha) of a swept position refined by Gauss-Newton on the profile peaks its limbs fall on.
+) -> FloatArray:
+    """(x, z, alpha) (C, 3) of swept positions refined by Gauss-Newton on the profile peaks their limbs
+    fall on (all C at once).
 
     The sweep's grid is coarse in height (one std); the limb widths, hence the distance, need the
     peaks' positions, and a start a few centimetres off in height sends the edge check astray.
     """
+    P = np.array([[h.x_m, h.z_m, 0.0] for h in hyps], dtype=np.float64).reshape(-1, 3)
     peaks = profile.peak_theta
-    if peaks.size == 0:
-        return h.x_m, h.z_m, 0.0
-    peak_limbs = LimbClusters(theta=peaks, polarity=np.zeros(peaks.size), length_px=profile.peak_value,
-                              contrast=profile.peak_value, d=limbs.d, e_x=limbs.e_x, e_z=limbs.e_z)
-    x, z, a = h.x_m, h.z_m, 0.0
+    if peaks.size == 0 or not hyps:
+        return P
+    S = np.array([float(h.sign) for h in hyps])
     # Coarse to fine: a height a few per cent off moves the outer limbs by more than the final tolerance.
     for tol in (2.5 * tol_rad, tol_rad):
-        th, vis = predict_limb_angles(np.array([x]), np.array([z]), np.array([a]), np.array([float(h.sign)]),
-                                      x_axes, radii)
-        err = np.abs(th[0][:, None] - peaks[None, :])
-        k = np.argmin(err, axis=1)
-        ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol)
+        th, vis = predict_limb_angles(P[:, 0], P[:, 1], P[:, 2], S, x_axes, radii)
+        err = np.abs(th[:, :, None] - peaks[None, None, :])  # (C, 2M, P)
+        k = np.argmin(err, axis=2)
+        e = np.take_along_axis(err, k[:, :, None], axis=2)[:, :, 0]
+        ok = vis & (th > theta_range[0]) & (th < theta_range[1]) & (e <= tol)
         matches = np.where(ok, k, -1).astype(np.intp)
-        x, z, a = refine_section(x, z, a, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
-                                 height_std_m, alpha_std_rad, angle_std_rad)
-    return x, z, a
+        P = refine_sections(P, S, matches, peaks, x_axes, radii, height_m, height_std_m, alpha_std_rad,
+                            angle_std_rad)
+    return P
