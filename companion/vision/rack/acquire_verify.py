@@ -1,7 +1,8 @@
 """Rack acquisition, step 3: check and refine a pose hypothesis with the tracker's edge measurement.
 
-The limbs are rendered and sampled by `limbs.sample_limbs` and searched along their normals by
-`edges.search_edges`, exactly as `RackTracker` does; the rows are the tracker's motion fields
+The limbs are rendered and sampled by `limbs.sample_limbs` and searched along their normals as
+`edges.search_edges` does (`acquire_edges`: the same search, its profiles read once per
+iteration), exactly as `RackTracker` does; the rows are the tracker's motion fields
 (`motion.pose_jacobian`) solved by `motion.solve_normal_equations` with `motion.robust_weights`.
 A few iterations with a shrinking search range refine the pose; the verdict is the fraction of
 the predicted limb samples whose edge is found (strong, of the hypothesis' polarity) and agrees
@@ -21,8 +22,8 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.geometry import se3
+from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
 from companion.vision.rack.acquire_lines import Segments
-from companion.vision.rack.edges import search_edges
 from companion.vision.rack.limbs import sample_limbs
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import median_1d, pose_jacobian, robust_weights, solve_normal_equations
@@ -144,8 +145,9 @@ def check_pose(
             return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
                              np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
         pol = limb_pol[s.limb]
-        meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
-                            tangent_offset_px=1.5)
+        # The profiles along the normals are read once; a polarity learnt below only re-picks the edges.
+        prof = normal_profiles(image_f32, s.uv, s.normal_px, int(rng_px), 1.5)
+        meas = pick_edges(prof, pol, int(rng_px), edge_threshold)
         if np.any(learn):
             # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
             good = meas.found & learn[s.limb]
@@ -156,8 +158,7 @@ def check_pose(
             learn = learn & ~decided
             if np.any(decided):
                 pol = limb_pol[s.limb]
-                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
-                                    tangent_offset_px=1.5)
+                meas = pick_edges(prof, pol, int(rng_px), edge_threshold)
         # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
         found = meas.found
         ref = found & (pol != 0.0)
@@ -165,7 +166,7 @@ def check_pose(
             ref = found
         if np.any(ref):
             frac = np.where(pol != 0.0, 0.2, 0.1)
-            found = found & (meas.strength >= frac * float(np.percentile(meas.strength[ref], 90)))
+            found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
         f = np.flatnonzero(found)
         J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
         A = np.zeros((f.size, 8))
