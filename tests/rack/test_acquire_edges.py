@@ -37,3 +37,18 @@ def test_percentile_90_equals_numpy(rng: np.random.Generator, n: int) -> None:
     assert percentile_90(x) == np.percentile(x, 90)
     ties = np.round(x / 10.0)
     assert percentile_90(ties) == np.percentile(ties, 90)
+
+
+def test_claimed_peaks_equal_the_brute_force_comparison(rng: np.random.Generator) -> None:
+    from companion.vision.rack.acquire_profile import PencilProfile
+
+    value = rng.uniform(0.0, 10.0, 400)
+    pk = np.flatnonzero((value[1:-1] >= value[:-2]) & (value[1:-1] > value[2:])) + 1
+    prof = PencilProfile(theta0=-0.7, bin_rad=0.003, value=value, ref=10.0,
+                         peak_theta=-0.7 + (pk + 0.5) * 0.003, peak_value=value[pk])
+    theta = rng.uniform(-0.75, 0.55, size=(50, 10))
+    use = rng.uniform(size=theta.shape) < 0.8
+    for tol_bins in (0, 1, 2, 5):
+        tol = (tol_bins + 1) * prof.bin_rad
+        brute = ((np.abs(prof.peak_theta[None, None, :] - theta[:, :, None]) <= tol) & use[:, :, None]).any(axis=1)
+        np.testing.assert_array_equal(prof.claimed_peaks(theta, use, tol), brute)

@@ -67,13 +67,19 @@ __all__ = ["AcquisitionConfig", "AcquisitionPrior", "AcquisitionResult", "RackHy
 
 @dataclass(frozen=True)
 class _Candidate:
-    """A proposed pose with what is needed to score it against the profile of its direction."""
+    """A proposed cross-section position (x, z, roll about the pipes) with what is needed to score it
+    against the profile of its direction; its pose is formed only when it is checked."""
 
-    T_rack_cam: FloatArray
+    x_m: float
+    z_m: float
+    alpha_rad: float
     sign: int
     polarity: int  # +1 pipes brighter than around them, -1 darker, 0 unknown
     prelim: float
     direction: int  # index into the per-direction tables
+
+    def pose(self, dirs: list[_Direction], y_m: float) -> FloatArray:
+        return _pose_from_section(self.x_m, self.z_m, self.alpha_rad, self.sign, dirs[self.direction].limbs, y_m)
 
 
 @dataclass(frozen=True)
@@ -165,19 +171,20 @@ def acquire_rack(
     for sign in {c.sign for c in cands} - {c.sign for c in to_check}:
         to_check.append(next(c for c in cands if c.sign == sign))
     for c in to_check:
+        T_c = c.pose(dirs, prior.y_m)
         # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
         # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
         chk = check_pose(img_f, camera, par,
-                         c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
+                         T_c, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
                          cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
                          prior.height_m, h_weight)
         if not credible(chk, cfg, prior, up_cam, n_par) and n_all > n_par:
             # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
             # the segments along it) and check again with every pipe.
-            ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
+            ys = crossing_y_candidates(seg, T_c, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
                                        cfg.direction_tol_rad, 0.03, 1)
             if ys.size:
-                T_y = c.T_rack_cam.copy()
+                T_y = T_c.copy()
                 T_y[1, 3] = ys[0]
                 pol = np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])
                 chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
@@ -258,16 +265,17 @@ def _propose(
         refined = refine_on_peaks(di.profile, swept, x_axes, radii, th_range, prior.height_m, prior.height_std_m,
                                   cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
         for sh, (x, z, a) in zip(swept, refined, strict=True):
-            cands.append(_Candidate(_pose_from_section(float(x), float(z), float(a), sh.sign, limbs, prior.y_m),
-                                    sh.sign, 0, sh.score, k))
+            cands.append(_Candidate(float(x), float(z), float(a), sh.sign, 0, sh.score, k))
         if limbs.theta.size >= 2:
-            for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                        di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
-                                        cfg.max_section_hypotheses, cfg.distinct_m):
-                ev, ex = profile_scores(di.profile, np.array([h.x_m]), np.array([h.z_m]), np.array([float(h.sign)]),
-                                        x_axes, radii, th_range, di.visible_length, tol_bins, cfg.min_limb_px)
-                cands.append(_Candidate(_pose_from_section(h.x_m, h.z_m, h.alpha_rad, h.sign, limbs, prior.y_m),
-                                        h.sign, h.polarity, float(ev[0] * ex[0]), k))
+            hyps = section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                      di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
+                                      cfg.max_section_hypotheses, cfg.distinct_m)
+            if hyps:
+                ev, ex = profile_scores(di.profile, np.array([h.x_m for h in hyps]), np.array([h.z_m for h in hyps]),
+                                        np.array([float(h.sign) for h in hyps]), x_axes, radii, th_range,
+                                        di.visible_length, tol_bins, cfg.min_limb_px)
+                for h, e, x in zip(hyps, ev, ex, strict=True):
+                    cands.append(_Candidate(h.x_m, h.z_m, h.alpha_rad, h.sign, h.polarity, float(e * x), k))
     return dirs, cands, num_limbs
 
 
@@ -294,8 +302,7 @@ def _signs(d: FloatArray, R0: FloatArray, prior: AcquisitionPrior, cfg: Acquisit
 def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
     out: list[_Candidate] = []
     for c in cands:
-        if all(c.sign != o.sign or abs(c.T_rack_cam[0, 3] - o.T_rack_cam[0, 3]) >= sep_m
-               or abs(c.T_rack_cam[2, 3] - o.T_rack_cam[2, 3]) >= 2 * sep_m for o in out):
+        if all(c.sign != o.sign or abs(c.x_m - o.x_m) >= sep_m or abs(c.z_m - o.z_m) >= 2 * sep_m for o in out):
             out.append(c)
     return out
 

@@ -16,7 +16,7 @@ angles in radians; lengths in metres.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -54,18 +54,41 @@ class PencilProfile:
     ref: float
     peak_theta: FloatArray
     peak_value: FloatArray
+    _dilated: dict[int, FloatArray] = field(default_factory=dict, compare=False, repr=False)
 
     def at(self, theta: FloatArray, tol_bins: int) -> FloatArray:
         """Largest profile value within `tol_bins` bins of each angle (0 outside the profile)."""
         b = np.round((theta - self.theta0) / self.bin_rad).astype(np.intp)
-        v = self.value
-        n = v.size
-        if tol_bins > 0:
-            pad = np.concatenate([np.zeros(tol_bins), v, np.zeros(tol_bins)])
-            stack = np.stack([pad[k : k + n] for k in range(2 * tol_bins + 1)])
-            v = stack.max(axis=0)
+        n = self.value.size
+        v = self._dilated.get(tol_bins)
+        if v is None:  # the running maximum, once per profile and tolerance
+            v = self.value
+            if tol_bins > 0:
+                pad = np.concatenate([np.zeros(tol_bins), v, np.zeros(tol_bins)])
+                stack = np.stack([pad[k : k + n] for k in range(2 * tol_bins + 1)])
+                v = stack.max(axis=0)
+            self._dilated[tol_bins] = v
         inside = (b >= 0) & (b < n)
         return np.where(inside, v[np.clip(b, 0, n - 1)], 0.0)
+
+    def claimed_peaks(self, theta: FloatArray, use: Any, tol_rad: float) -> Any:
+        """(C, P) whether each peak lies within `tol_rad` of one of the angles `theta` (C, L) where `use` (C, L).
+
+        Peaks are local maxima, at least two bins apart: only the few nearest each angle are compared."""
+        P = self.peak_theta.size
+        C, L = theta.shape
+        out = np.zeros((C, P), dtype=bool)
+        if P == 0:
+            return out
+        j = np.searchsorted(self.peak_theta, theta)
+        rows = np.broadcast_to(np.arange(C)[:, None], (C, L))
+        n_side = int(tol_rad / (2.0 * self.bin_rad)) + 2
+        for o in range(-n_side, n_side):
+            idx = j + o
+            ok = use & (idx >= 0) & (idx < P)
+            ok &= np.abs(self.peak_theta[np.clip(idx, 0, P - 1)] - theta) <= tol_rad
+            out[rows[ok], idx[ok]] = True
+        return out
 
 
 def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float) -> PencilProfile:
@@ -132,8 +155,7 @@ def profile_scores(
     evidence = np.where(tot_L > 0, (ev * L).sum(axis=1) / np.maximum(tot_L, 1e-9), 0.0)
     if profile.peak_theta.size == 0:
         return evidence, np.zeros(X.size)
-    near = np.abs(profile.peak_theta[None, None, :] - th[:, :, None]) <= (tol_bins + 1) * profile.bin_rad
-    claimed = (near & in_view[:, :, None]).any(axis=1)  # (C, P)
+    claimed = profile.claimed_peaks(th, in_view, (tol_bins + 1) * profile.bin_rad)  # (C, P)
     explained = (claimed * profile.peak_value[None, :]).sum(axis=1) / profile.peak_value.sum()
     return evidence, explained
 
