@@ -55,7 +55,7 @@ from companion.vision.rack.acquire_types import (
 )
 from companion.vision.rack.acquire_verify import (
     EdgeCheck,
-    check_pose,
+    check_poses,
     crossing_y_candidates,
     pose_covariance,
     subset_pipes,
@@ -170,14 +170,20 @@ def acquire_rack(
     # in view) that looks the same both ways must come out ambiguous, not as the first one found.
     for sign in {c.sign for c in cands} - {c.sign for c in to_check}:
         to_check.append(next(c for c in cands if c.sign == sign))
-    for c in to_check:
-        T_c = c.pose(dirs, prior.y_m)
-        # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
-        # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
-        chk = check_pose(img_f, camera, par,
-                         T_c, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
-                         cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
-                         prior.height_m, h_weight)
+
+    def check(Ts: list[FloatArray], pols: list[FloatArray], extra: bool, polish: bool) -> list[EdgeCheck]:
+        """`check_pose` of the poses side by side (all pipes when `extra`; the polish ranges when `polish`)."""
+        return check_poses(img_f, camera, pipes_all if extra else par, Ts, pols,
+                           cfg.polish_ranges_px if polish else cfg.check_ranges_px, cfg.samples_per_limb,
+                           cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0 if polish else damping,
+                           up_cam, up_weight, prior.height_m, h_weight)
+
+    # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
+    # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
+    T_cs = [c.pose(dirs, prior.y_m) for c in to_check]
+    chks = check(T_cs, [np.full(n_par, -float(c.polarity)) for c in to_check], False, False)
+    again: list[tuple[int, FloatArray, FloatArray]] = []
+    for i, (c, T_c, chk) in enumerate(zip(to_check, T_cs, chks, strict=True)):
         if not credible(chk, cfg, prior, up_cam, n_par) and n_all > n_par:
             # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
             # the segments along it) and check again with every pipe.
@@ -186,10 +192,12 @@ def acquire_rack(
             if ys.size:
                 T_y = T_c.copy()
                 T_y[1, 3] = ys[0]
-                pol = np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])
-                chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
-                                 cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
-                                 prior.height_m, h_weight)
+                again.append((i, T_y, np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])))
+    if again:
+        for (i, _, _), chk in zip(again, check([a[1] for a in again], [a[2] for a in again], True, False),
+                                  strict=True):
+            chks[i] = chk
+    for c, chk in zip(to_check, chks, strict=True):
         explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
         if not credible(chk, cfg, prior, up_cam, n_par):
             # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
@@ -199,21 +207,19 @@ def acquire_rack(
     checked.sort(key=lambda sc: -sc[0])
     # Polish the contenders: the lateral position and the roll about the pipes are nearly
     # interchangeable from high above, and converge slowly under the per-iteration damping.
-    polished: list[tuple[float, int, EdgeCheck]] = []
-    for score, sign, chk, k in checked:
-        if checked and score >= cfg.ambiguity_ratio * checked[0][0] * 0.9:
-            with_extra = chk.pipe_samples.size > n_par  # checked with the crossing pipe placed
-            pol = np.full(n_par, -float(_polarity_of(chk, n_par)))
-            if with_extra:
-                pol = np.concatenate([pol, np.zeros(n_all - n_par)])
-            chk2 = check_pose(img_f, camera, pipes_all if with_extra else par, chk.T_rack_cam, pol,
-                              cfg.polish_ranges_px, cfg.samples_per_limb,
-                              cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
-                              prior.height_m, h_weight)
+    polished: list[tuple[float, int, EdgeCheck]] = [(score, sign, chk) for score, sign, chk, _ in checked]
+    todo = [i for i, (score, _, _, _) in enumerate(checked) if score >= cfg.ambiguity_ratio * checked[0][0] * 0.9]
+    for extra in (False, True):  # checked with the crossing pipe placed or not
+        group = [i for i in todo if (checked[i][2].pipe_samples.size > n_par) == extra]
+        if not group:
+            continue
+        pols = [np.concatenate([np.full(n_par, -float(_polarity_of(checked[i][2], n_par))),
+                                np.zeros(n_all - n_par if extra else 0)]) for i in group]
+        for i, chk2 in zip(group, check([checked[i][2].T_rack_cam for i in group], pols, extra, True), strict=True):
+            _, sign, _, k = checked[i]
             if credible(chk2, cfg, prior, up_cam, n_par):
-                score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
-                chk = chk2
-        polished.append((score, sign, chk))
+                polished[i] = (chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg),
+                               sign, chk2)
     polished.sort(key=lambda sc: -sc[0])
     if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
         # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
@@ -324,12 +330,14 @@ def _finish(
         ys = crossing_y_candidates(seg, T, pipes_all, np.arange(n_par, n_all), prior.y_m - span, prior.y_m + span,
                                    cfg.direction_tol_rad, 0.03, 3)
         passed: list[tuple[float, EdgeCheck]] = []
+        Tys = []
         for y in ys:
             Ty = T.copy()
             Ty[1, 3] = y
-            c = check_pose(img_f, camera, pipes_all, Ty, np.zeros(n_all), cfg.check_ranges_px,
-                           cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
-                           up_cam, up_weight, prior.height_m, h_weight)
+            Tys.append(Ty)
+        for c in check_poses(img_f, camera, pipes_all, Tys, [np.zeros(n_all)] * len(Tys), cfg.check_ranges_px,
+                             cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
+                             up_cam, up_weight, prior.height_m, h_weight):
             # Both limbs of a crossing pipe must agree: one limb alone fits many positions.
             ls, la = c.limb_samples[2 * n_par:], c.limb_agree[2 * n_par:]
             seen = ls >= cfg.samples_per_limb / 2

@@ -24,7 +24,9 @@ from companion.checks import FloatArray
 from companion.geometry import se3
 from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
 from companion.vision.rack.acquire_lines import Segments
-from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.acquire_samples import sample_limbs_many
+from companion.vision.rack.edges import EdgeMeasurements
+from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import median_1d, pose_jacobian, robust_weights, solve_normal_equations
 
@@ -130,71 +132,136 @@ def check_pose(
     limbs of known polarity (a tenth on the others: a pipe lying on pipes shows a weak step):
     texture, noise and shading never reach a fraction of a real silhouette.
     """
-    T = np.array(T_rack_cam, dtype=np.float64, copy=True)
+    return check_poses(image_f32, camera, pipes, [T_rack_cam], [pipe_polarity], ranges_px, samples_per_limb,
+                       edge_threshold, inlier_px, margin_px, damping, up_cam, up_weight, height_m, height_weight)[0]
+
+
+def check_poses(
+    image_f32: Float32Image,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    T_rack_cam: list[FloatArray],
+    pipe_polarity: list[FloatArray],
+    ranges_px: tuple[int, ...],
+    samples_per_limb: int,
+    edge_threshold: float,
+    inlier_px: float,
+    margin_px: float,
+    damping: FloatArray,
+    up_cam: FloatArray | None = None,
+    up_weight: float = 0.0,
+    height_m: float | None = None,
+    height_weight: float = 0.0,
+) -> list[EdgeCheck]:
+    """`check_pose` of several poses (with their polarities) side by side: each pose's iterations are its
+    own, the limb sampling and the edge search of an iteration run once over the samples of all poses."""
     M = pipes.radii.size
-    last: dict[str, Any] = {}
-    # Per-limb polarity: the pipe's where known, else learnt from the first iteration's edges.
-    limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
-    learn = limb_pol == 0.0
-    bias = np.zeros(2)
+    states = [_Refinement(np.array(T, dtype=np.float64, copy=True), np.repeat(np.asarray(pol, dtype=np.float64), 2))
+              for T, pol in zip(T_rack_cam, pipe_polarity, strict=True)]
     prior8 = np.concatenate([damping, [1.0 / 1.0**2] * 2])
     for rng_px in ranges_px:
-        s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
-        n = s.uv.shape[0]
-        if n == 0:
-            return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
-                             np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
-        pol = limb_pol[s.limb]
+        active = [st for st in states if st.result is None]
+        if not active:
+            break
+        samples = sample_limbs_many([st.T for st in active], camera, pipes, samples_per_limb, margin_px, 12.0, 0.1,
+                                    3.0)
+        for st, s in zip(active, samples, strict=True):
+            if s.uv.shape[0] == 0:
+                st.result = EdgeCheck(st.T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M),
+                                      st.limb_pol, np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
+        pairs = [(st, s) for st, s in zip(active, samples, strict=True) if st.result is None]
+        if not pairs:
+            break
         # The profiles along the normals are read once; a polarity learnt below only re-picks the edges.
-        prof = normal_profiles(image_f32, s.uv, s.normal_px, int(rng_px), 1.5)
-        meas = pick_edges(prof, pol, int(rng_px), edge_threshold)
-        if np.any(learn):
-            # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
-            good = meas.found & learn[s.limb]
-            tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=2 * M)
-            mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=2 * M)
-            decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
-            limb_pol = np.where(decided, np.sign(tot), limb_pol)
-            learn = learn & ~decided
-            if np.any(decided):
-                pol = limb_pol[s.limb]
-                meas = pick_edges(prof, pol, int(rng_px), edge_threshold)
-        # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
-        found = meas.found
-        ref = found & (pol != 0.0)
-        if not np.any(ref):
-            ref = found
-        if np.any(ref):
-            frac = np.where(pol != 0.0, 0.2, 0.1)
-            found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
-        f = np.flatnonzero(found)
-        J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
-        A = np.zeros((f.size, 8))
-        A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
-        side = s.limb[f] % 2
-        A[np.arange(f.size), 6 + side] = 1.0
-        r = meas.offset_px[f] - bias[side]
-        w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
-        A_all, r_all, w_all = A, r, w
-        if up_cam is not None and up_weight > 0:
-            u, J_up = up_axis_with_jacobian(T)
-            A_up = np.zeros((3, 8))
-            A_up[:, :6] = J_up
-            A_all = np.vstack([A, A_up])
-            r_all = np.concatenate([r, up_cam - u])
-            w_all = np.concatenate([w, np.full(3, up_weight)])
-        if height_m is not None and height_weight > 0:
-            # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
-            A_h = np.zeros((1, 8))
-            A_h[0, :3] = T[2, :3]
-            A_all = np.vstack([A_all, A_h])
-            r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
-            w_all = np.concatenate([w_all, [height_weight]])
-        x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
-        T = T @ se3.exp_one(x[:6])
-        bias = bias + x[6:]
-        H_data = (A * w[:, None]).T @ A
-        last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": H_data}
+        prof = normal_profiles(image_f32, np.concatenate([s.uv for _, s in pairs]),
+                               np.concatenate([s.normal_px for _, s in pairs]), int(rng_px), 1.5)
+        meas_all = pick_edges(prof, np.concatenate([st.limb_pol[s.limb] for st, s in pairs]), int(rng_px),
+                              edge_threshold)
+        start = 0
+        for st, s in pairs:
+            stop = start + s.uv.shape[0]
+            _iterate(st, s, prof[start:stop], _rows(meas_all, start, stop), int(rng_px), edge_threshold, inlier_px,
+                     prior8, up_cam, up_weight, height_m, height_weight)
+            start = stop
+    return [st.result if st.result is not None else _verdict(st, M, inlier_px) for st in states]
+
+
+class _Refinement:
+    """One pose's state through `check_poses`' iterations."""
+
+    def __init__(self, T: FloatArray, limb_pol: FloatArray) -> None:
+        self.T = T
+        self.limb_pol = limb_pol  # per limb: the pipe's where known, else learnt from the first iteration's edges
+        self.learn = limb_pol == 0.0
+        self.bias = np.zeros(2)
+        self.last: dict[str, Any] = {}
+        self.result: EdgeCheck | None = None
+
+
+def _rows(meas: EdgeMeasurements, start: int, stop: int) -> EdgeMeasurements:
+    return EdgeMeasurements(offset_px=meas.offset_px[start:stop], found=meas.found[start:stop],
+                            sign=meas.sign[start:stop], strength=meas.strength[start:stop])
+
+
+def _iterate(st: _Refinement, s: LimbSamples, prof: Any, meas: EdgeMeasurements, rng_px: int, edge_threshold: float,
+             inlier_px: float, prior8: FloatArray, up_cam: FloatArray | None, up_weight: float,
+             height_m: float | None, height_weight: float) -> None:
+    """One Gauss-Newton iteration of `check_pose` on the pose's samples `s` and their edges `meas`."""
+    M2 = st.limb_pol.size
+    limb_pol, learn, bias, T = st.limb_pol, st.learn, st.bias, st.T
+    pol = limb_pol[s.limb]
+    if np.any(learn):
+        # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
+        good = meas.found & learn[s.limb]
+        tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=M2)
+        mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=M2)
+        decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
+        limb_pol = np.where(decided, np.sign(tot), limb_pol)
+        learn = learn & ~decided
+        if np.any(decided):
+            pol = limb_pol[s.limb]
+            meas = pick_edges(prof, pol, rng_px, edge_threshold)
+    # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
+    found = meas.found
+    ref = found & (pol != 0.0)
+    if not np.any(ref):
+        ref = found
+    if np.any(ref):
+        frac = np.where(pol != 0.0, 0.2, 0.1)
+        found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
+    f = np.flatnonzero(found)
+    J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
+    A = np.zeros((f.size, 8))
+    A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
+    side = s.limb[f] % 2
+    A[np.arange(f.size), 6 + side] = 1.0
+    r = meas.offset_px[f] - bias[side]
+    w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
+    A_all, r_all, w_all = A, r, w
+    if up_cam is not None and up_weight > 0:
+        u, J_up = up_axis_with_jacobian(T)
+        A_up = np.zeros((3, 8))
+        A_up[:, :6] = J_up
+        A_all = np.vstack([A, A_up])
+        r_all = np.concatenate([r, up_cam - u])
+        w_all = np.concatenate([w, np.full(3, up_weight)])
+    if height_m is not None and height_weight > 0:
+        # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
+        A_h = np.zeros((1, 8))
+        A_h[0, :3] = T[2, :3]
+        A_all = np.vstack([A_all, A_h])
+        r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
+        w_all = np.concatenate([w_all, [height_weight]])
+    x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
+    st.T = T @ se3.exp_one(x[:6])
+    st.bias = bias + x[6:]
+    st.limb_pol, st.learn = limb_pol, learn
+    st.last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": (A * w[:, None]).T @ A}
+
+
+def _verdict(st: _Refinement, M: int, inlier_px: float) -> EdgeCheck:
+    """The check of a refined pose: its last iteration's samples, edges and solution."""
+    last = st.last
     s, f = last["s"], last["f"]
     r_post = last["r"] - last["A"] @ last["x"]
     agree_rows = np.abs(r_post) <= inlier_px
@@ -209,14 +276,14 @@ def check_pose(
     scale2 = float(np.sum(w * r_post**2) / dof)
     resid = 1.4826 * median_1d(np.abs(r_post[agree_rows])) if np.any(agree_rows) else float("inf")
     return EdgeCheck(
-        T_rack_cam=T,
+        T_rack_cam=st.T,
         num_samples=int(s.uv.shape[0]),
         agree_fraction=float(agree.mean()),
         pipe_samples=pipe_samples,
         pipe_agree=pipe_agree,
         limb_samples=limb_samples,
         limb_agree=limb_agree,
-        limb_polarity=limb_pol,
+        limb_polarity=st.limb_pol,
         limb_run=_longest_runs(s.limb, agree, 2 * M),
         residual_px=float(resid),
         H_data=last["H"],
