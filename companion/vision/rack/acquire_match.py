@@ -72,9 +72,11 @@ def predict_limb_angles(
     th[:, 1::2] = phi + beta + alpha[:, None]
     # A limb is hidden when it lies inside the angular interval of a nearer pipe.
     lo, hi = th[:, 0::2], th[:, 1::2]  # (C, M)
-    inside = (th[:, :, None] > lo[:, None, :]) & (th[:, :, None] < hi[:, None, :])  # (C, 2M, M)
-    nearer = np.repeat(l, 2, axis=1)[:, :, None] > l[:, None, :]
-    visible = ~np.any(inside & nearer, axis=2) & (l > radii[None, :] * 1.001).repeat(2, axis=1)
+    l2 = np.repeat(l, 2, axis=1)
+    hidden = np.zeros(th.shape, dtype=bool)
+    for m in range(M):
+        hidden |= (th > lo[:, m : m + 1]) & (th < hi[:, m : m + 1]) & (l2 > l[:, m : m + 1])
+    visible = ~hidden & (l > radii[None, :] * 1.001).repeat(2, axis=1)
     return th, visible
 
 

@@ -76,19 +76,15 @@ class PencilProfile:
 
         Peaks are local maxima, at least two bins apart: only the few nearest each angle are compared."""
         P = self.peak_theta.size
-        C, L = theta.shape
-        out = np.zeros((C, P), dtype=bool)
+        C = theta.shape[0]
         if P == 0:
-            return out
-        j = np.searchsorted(self.peak_theta, theta)
-        rows = np.broadcast_to(np.arange(C)[:, None], (C, L))
+            return np.zeros((C, P), dtype=bool)
         n_side = int(tol_rad / (2.0 * self.bin_rad)) + 2
-        for o in range(-n_side, n_side):
-            idx = j + o
-            ok = use & (idx >= 0) & (idx < P)
-            ok &= np.abs(self.peak_theta[np.clip(idx, 0, P - 1)] - theta) <= tol_rad
-            out[rows[ok], idx[ok]] = True
-        return out
+        idx = np.searchsorted(self.peak_theta, theta)[None, :, :] + np.arange(-n_side, n_side)[:, None, None]
+        ok = use[None, :, :] & (idx >= 0) & (idx < P)
+        ok &= np.abs(self.peak_theta[np.clip(idx, 0, P - 1)] - theta[None, :, :]) <= tol_rad
+        flat = (np.arange(C)[None, :, None] * P + idx)[ok]
+        return np.bincount(flat, minlength=C * P).reshape(C, P) > 0
 
 
 def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float) -> PencilProfile:
