@@ -231,27 +231,32 @@ def _iterate(st: _Refinement, s: LimbSamples, prof: Any, meas: EdgeMeasurements,
         found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
     f = np.flatnonzero(found)
     J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
-    A = np.zeros((f.size, 8))
+    # The edge rows, then the autopilot's tilt (3 rows) and height (1 row) when given, in one array.
+    n_up = 3 if up_cam is not None and up_weight > 0 else 0
+    n_h = 1 if height_m is not None and height_weight > 0 else 0
+    A_all = np.zeros((f.size + n_up + n_h, 8))
+    A = A_all[: f.size]
     A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
     side = s.limb[f] % 2
     A[np.arange(f.size), 6 + side] = 1.0
     r = meas.offset_px[f] - bias[side]
     w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
-    A_all, r_all, w_all = A, r, w
-    if up_cam is not None and up_weight > 0:
+    r_all = np.empty(A_all.shape[0])
+    w_all = np.empty(A_all.shape[0])
+    r_all[: f.size] = r
+    w_all[: f.size] = w
+    if n_up:
+        assert up_cam is not None
         u, J_up = up_axis_with_jacobian(T)
-        A_up = np.zeros((3, 8))
-        A_up[:, :6] = J_up
-        A_all = np.vstack([A, A_up])
-        r_all = np.concatenate([r, up_cam - u])
-        w_all = np.concatenate([w, np.full(3, up_weight)])
-    if height_m is not None and height_weight > 0:
+        A_all[f.size : f.size + 3, :6] = J_up
+        r_all[f.size : f.size + 3] = up_cam - u
+        w_all[f.size : f.size + 3] = up_weight
+    if n_h:
+        assert height_m is not None
         # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
-        A_h = np.zeros((1, 8))
-        A_h[0, :3] = T[2, :3]
-        A_all = np.vstack([A_all, A_h])
-        r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
-        w_all = np.concatenate([w_all, [height_weight]])
+        A_all[-1, :3] = T[2, :3]
+        r_all[-1] = height_m - T[2, 3]
+        w_all[-1] = height_weight
     x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
     st.T = T @ se3.exp_one(x[:6])
     st.bias = bias + x[6:]
