@@ -119,16 +119,25 @@ def _pose_from_section(x_m: float, z_m: float, alpha_rad: float, sign: int, limb
     return se3.make((U @ Vt).T, np.array([x_m, y_m, z_m]))
 
 
-def _explained(di: _Direction, T: FloatArray, sign: int, x_axes: FloatArray, radii: FloatArray,
-               cfg: AcquisitionConfig) -> float:
-    """Share of the direction's profile peaks that the pose's limbs explain."""
+def _explained(dirs: list[_Direction], poses: list[tuple[int, FloatArray, int]], x_axes: FloatArray,
+               radii: FloatArray, cfg: AcquisitionConfig) -> list[float]:
+    """Share of its direction's profile peaks that each pose's limbs explain; `poses` (direction index,
+    T_rack_cam, sign), scored one direction at a time."""
     tol = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
-    # The refined pose's roll about the pipes relative to the profile's basis (see _pose_from_section).
-    u = T[2, :3]
-    alpha = np.array([np.arctan2(-(u @ di.limbs.e_x), u @ di.limbs.e_z)])
-    _, ex = profile_scores(di.profile, np.array([T[0, 3]]), np.array([T[2, 3]]), np.array([float(sign)]), x_axes,
-                           radii, di.theta_range, di.visible_length, tol, cfg.min_limb_px, alpha)
-    return float(ex[0])
+    out = [0.0] * len(poses)
+    for k in sorted({p[0] for p in poses}):
+        di = dirs[k]
+        sel = [i for i, p in enumerate(poses) if p[0] == k]
+        T = np.stack([poses[i][1] for i in sel])
+        u = T[:, 2, :3]
+        # The refined pose's roll about the pipes relative to the profile's basis (see _pose_from_section).
+        alpha = np.array([np.arctan2(-(ui @ di.limbs.e_x), ui @ di.limbs.e_z) for ui in u])
+        _, ex = profile_scores(di.profile, T[:, 0, 3].copy(), T[:, 2, 3].copy(),
+                               np.array([float(poses[i][2]) for i in sel]), x_axes, radii, di.theta_range,
+                               di.visible_length, tol, cfg.min_limb_px, alpha)
+        for i, e in zip(sel, ex, strict=True):
+            out[i] = float(e)
+    return out
 
 
 def acquire_rack(
@@ -197,8 +206,9 @@ def acquire_rack(
         for (i, _, _), chk in zip(again, check([a[1] for a in again], [a[2] for a in again], True, False),
                                   strict=True):
             chks[i] = chk
-    for c, chk in zip(to_check, chks, strict=True):
-        explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
+    poses = [(c.direction, chk.T_rack_cam, c.sign) for c, chk in zip(to_check, chks, strict=True)]
+    explained_all = _explained(dirs, poses, x_axes, radii, cfg)
+    for c, chk, explained in zip(to_check, chks, explained_all, strict=True):
         if not credible(chk, cfg, prior, up_cam, n_par):
             # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
             rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam, num_limbs_ok(chk, cfg, n_par)))
@@ -215,11 +225,11 @@ def acquire_rack(
             continue
         pols = [np.concatenate([np.full(n_par, -float(_polarity_of(checked[i][2], n_par))),
                                 np.zeros(n_all - n_par if extra else 0)]) for i in group]
-        for i, chk2 in zip(group, check([checked[i][2].T_rack_cam for i in group], pols, extra, True), strict=True):
-            _, sign, _, k = checked[i]
-            if credible(chk2, cfg, prior, up_cam, n_par):
-                polished[i] = (chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg),
-                               sign, chk2)
+        chk2s = check([checked[i][2].T_rack_cam for i in group], pols, extra, True)
+        ok = [(i, chk2) for i, chk2 in zip(group, chk2s, strict=True) if credible(chk2, cfg, prior, up_cam, n_par)]
+        ex2 = _explained(dirs, [(checked[i][3], chk2.T_rack_cam, checked[i][1]) for i, chk2 in ok], x_axes, radii, cfg)
+        for (i, chk2), e in zip(ok, ex2, strict=True):
+            polished[i] = (chk2.agree_fraction * e, checked[i][1], chk2)
     polished.sort(key=lambda sc: -sc[0])
     if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
         # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
