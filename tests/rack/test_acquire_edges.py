@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
+from companion.vision.rack.acquire_edges import normal_profiles, percentile, percentile_90, pick_edges
 from companion.vision.rack.edges import search_edges
 
 
@@ -37,6 +37,8 @@ def test_percentile_90_equals_numpy(rng: np.random.Generator, n: int) -> None:
     assert percentile_90(x) == np.percentile(x, 90)
     ties = np.round(x / 10.0)
     assert percentile_90(ties) == np.percentile(ties, 90)
+    for q in (0, 1, 50, 99, 100):
+        assert percentile(x, q) == np.percentile(x, q)
 
 
 def test_claimed_peaks_equal_the_brute_force_comparison(rng: np.random.Generator) -> None:

@@ -42,6 +42,7 @@ from companion.vision.rack.acquire_lines import (
 from companion.vision.rack.acquire_match import section_hypotheses
 from companion.vision.rack.acquire_profile import (
     PencilProfile,
+    image_gradient,
     pencil_profile,
     profile_scores,
     refine_on_peaks,
@@ -261,6 +262,7 @@ def _propose(
     dirs: list[_Direction] = []
     cands: list[_Candidate] = []
     num_limbs = 0
+    gradient = None
     for d0 in direction_candidates(seg, up_cam, np.deg2rad(1.0), cfg.max_directions, np.deg2rad(15.0)):
         d, inl = refine_direction(seg, d0, up_cam, cfg.direction_tol_rad)
         limbs = limb_clusters(seg, inl, d, up_cam, camera, cfg.merge_px / f_px)
@@ -270,8 +272,9 @@ def _propose(
             continue
         th_range = image_theta_range(camera, limbs)
         grid = np.linspace(th_range[0], th_range[1], 181)
-        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px), th_range, grid,
-                        visible_length_px(camera, limbs, grid))
+        gradient = gradient or image_gradient(small)  # once per image
+        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px, gradient), th_range,
+                        grid, visible_length_px(camera, limbs, grid))
         k = len(dirs)
         dirs.append(di)
         tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)

@@ -6,8 +6,8 @@ of the edge does. `normal_profiles` reads them (one `cv2.remap`, three parallel 
 `tangent_offset_px` apart averaged); `pick_edges` chooses the edge of each sample for a polarity.
 Together they return exactly what `search_edges(..., tangent_offset_px=...)` returns (central
 difference, the default distance prior, no inner-profile reference): the same float32
-arithmetic in the same order. `percentile_90` is `np.percentile(x, 90)` (linear) with one
-partition. Pixels follow OpenCV (integer coordinates are pixel centres).
+arithmetic in the same order. `percentile` is `np.percentile` (linear) with one partition.
+Pixels follow OpenCV (integer coordinates are pixel centres).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from companion.vision.rack.edges import EdgeMeasurements, _search_constants
 
 Float32Array = np.ndarray[Any, np.dtype[np.float32]]
 
-__all__ = ["normal_profiles", "percentile_90", "pick_edges"]
+__all__ = ["normal_profiles", "percentile", "percentile_90", "pick_edges"]
 
 
 def normal_profiles(image_f32: Float32Array, uv: FloatArray, normal: FloatArray, range_px: int,
@@ -86,8 +86,14 @@ def pick_edges(prof: Float32Array, polarity: FloatArray, range_px: int, threshol
 
 def percentile_90(x: FloatArray) -> float:
     """`np.percentile(x, 90)` of a non-empty 1-D float array without NaN (the same value)."""
+    return percentile(x, 90)
+
+
+def percentile(x: FloatArray, q: int) -> float:
+    """`np.percentile(x, q)` (linear method) of a non-empty 1-D float array without NaN, 0 <= q <= 100
+    (the same value: numpy's index, weight and interpolation, with one partition)."""
     n = x.size
-    virtual = (n - 1) * 0.9
+    virtual = (n - 1) * (q / 100)
     if virtual >= n - 1:
         return float(np.max(x))
     lo = int(np.floor(virtual))

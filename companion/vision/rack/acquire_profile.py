@@ -24,10 +24,12 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.acquire_edges import percentile
 from companion.vision.rack.acquire_lines import LimbClusters
 from companion.vision.rack.acquire_match import predict_limb_angles, refine_sections
 
 GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
+Float32Image = np.ndarray[Any, np.dtype[np.float32]]
 
 
 @functools.lru_cache(maxsize=8)
@@ -87,15 +89,21 @@ class PencilProfile:
         return np.bincount(flat, minlength=C * P).reshape(C, P) > 0
 
 
-def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float) -> PencilProfile:
-    """The profile of `small` (the image resized, any scale) for the pipe direction and basis of `limbs`."""
+def image_gradient(small: GrayImage) -> tuple[Float32Image, Float32Image]:
+    """The grey-level gradient (x, y) of `small` (levels per px, Sobel), shared by the directions' profiles."""
+    img = small.astype(np.float32)
+    return cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) * 0.125, cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) * 0.125
+
+
+def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float,
+                   gradient: tuple[Float32Image, Float32Image] | None = None) -> PencilProfile:
+    """The profile of `small` (the image resized, any scale) for the pipe direction and basis of `limbs`;
+    `gradient` its `image_gradient` when already computed."""
     h, w = small.shape
     rays = _pixel_rays(camera, w, h)
     # The angle of a pixel's ray in the cross-section; its component along the pipes does not matter.
     theta = np.arctan2(rays @ limbs.e_z, rays @ limbs.e_x).astype(np.float32)
-    img = small.astype(np.float32)
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) * 0.125
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) * 0.125
+    gx, gy = image_gradient(small) if gradient is None else gradient
     tx = cv2.Sobel(theta, cv2.CV_32F, 1, 0, ksize=3)
     ty = cv2.Sobel(theta, cv2.CV_32F, 0, 1, ksize=3)
     tn = np.sqrt(tx * tx + ty * ty) + np.float32(1e-12)
@@ -108,7 +116,7 @@ def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters,
     # Lines that cross only a corner of the image have few pixels: weak evidence, not a peak.
     value = np.where(cnt >= 0.25 * min(h, w), tot / np.maximum(cnt, 1.0), 0.0)
     value = np.asarray(np.convolve(value, np.array([0.25, 0.5, 0.25]), mode="same"))
-    ref = float(np.percentile(value[value > 0], 99)) if np.any(value > 0) else 0.0
+    ref = percentile(value[value > 0], 99) if np.any(value > 0) else 0.0
     is_peak = np.zeros(n_bins, dtype=bool)
     is_peak[1:-1] = (value[1:-1] >= value[:-2]) & (value[1:-1] > value[2:]) & (value[1:-1] >= 0.5 * ref)
     pk = np.flatnonzero(is_peak)
