@@ -22,6 +22,9 @@ locked. Confident wrong = confident with a wrong assignment. No lock = not confi
 over the attempts where at least two parallel pipes are fully in view (both limbs inside the
 image over at least 150 px, after occlusion) and, separately, over all attempts.
 
+The attempts come from `view_cases` (in order; `bench/rack_acquire_ab.py` renders the same ones to
+compare two implementations on them).
+
 Usage: python bench/rack_acquire.py [--views 500] [--appearance default|field|both] [--seed 1]
                                     [--yaw-std-deg 20]
 """
