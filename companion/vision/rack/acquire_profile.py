@@ -184,23 +184,27 @@ def sweep_section(
     sc = score.reshape(n_x, n_z, n_s)
     iz = sc.argmax(axis=1)  # (n_x, n_s)
     best = np.take_along_axis(sc, iz[:, None, :], axis=1)[:, 0, :]
-    out: list[SweptHypothesis] = []
+    ix_l, si_l = [], []
     for si in range(n_s):
         col = best[:, si]
         peak = np.zeros(n_x, dtype=bool)
         peak[1:-1] = (col[1:-1] >= col[:-2]) & (col[1:-1] > col[2:]) & (col[1:-1] > 0)
-        for ix in np.flatnonzero(peak):
-            flat = (ix * n_z + iz[ix, si]) * n_s + si
-            out.append(SweptHypothesis(x_m=float(xs[ix]), z_m=float(zs[iz[ix, si]]), sign=int(signs[si]),
-                                       score=float(col[ix]), evidence=float(evidence[flat]),
-                                       explained=float(explained[flat])))
-    out.sort(key=lambda h: -h.score)
+        at = np.flatnonzero(peak)
+        ix_l.append(at)
+        si_l.append(np.full(at.size, si))
+    ix_all, si_all = np.concatenate(ix_l), np.concatenate(si_l)
+    peak_score = best[ix_all, si_all]
     kept: list[SweptHypothesis] = []
-    for h in out:
+    # Best first (ties in sign-then-x order, as a stable sort of the peaks), at least separation_m apart.
+    for j in np.argsort(-peak_score, kind="stable"):
         if len(kept) >= max_hypotheses:
             break
-        if all(h.sign != k.sign or abs(h.x_m - k.x_m) >= separation_m for k in kept):
-            kept.append(h)
+        ix, si = int(ix_all[j]), int(si_all[j])
+        x, sign = float(xs[ix]), int(signs[si])
+        if all(sign != k.sign or abs(x - k.x_m) >= separation_m for k in kept):
+            flat = (ix * n_z + iz[ix, si]) * n_s + si
+            kept.append(SweptHypothesis(x_m=x, z_m=float(zs[iz[ix, si]]), sign=sign, score=float(peak_score[j]),
+                                        evidence=float(evidence[flat]), explained=float(explained[flat])))
     return kept
 
 
