@@ -25,7 +25,8 @@ def _view(yaw: float, xyz: tuple[float, float, float]) -> np.ndarray:
 def _poses() -> list[np.ndarray]:
     return [_view(0.3, (1.0, 4.0, 2.6)), _view(-0.5, (0.2, 6.0, 1.9)),
             _view(0.1, (-9.0, 5.0, 2.0)),  # nothing in view
-            _view(1.2, (1.4, 9.5, 3.5)), _view(0.0, (0.9, 5.0, 0.9))]  # the rack's end; close over the pipes
+            _view(1.2, (1.4, 9.5, 3.5)), _view(0.0, (0.9, 5.0, 0.9)),  # the rack's end; close over the pipes
+            _view(0.2, (0.15, 5.0, 0.12))]  # inside pipe 0's cylinder: its limbs are not valid
 
 
 def test_sample_limbs_many_equals_sample_limbs_per_pose() -> None:

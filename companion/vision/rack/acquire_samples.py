@@ -2,21 +2,25 @@
 
 The edge check refines a few proposals side by side; sampling their limbs one pose at a time
 spends most of its time in NumPy's per-call overhead (a few hundred samples per pose). Here the
-per-pose steps (the limb lines seen from the camera centre, the rotation into the camera, the
-occlusion by other pipes) run per pose with the functions of `limbs`, and the row-wise steps
-(clipping to the view, sample placement, projection, image normals) run once over the rows of
-all poses. The result per pose is exactly `sample_limbs`' (the same arithmetic per row; tested).
+limb lines of `limbs.limb_lines` are formed for all camera centres at once (the same arithmetic
+with a leading pose axis), the occlusion by other pipes is `limbs.occluded` per pose, and the
+row-wise steps (clipping to the view, sample placement, projection, image normals) run once over
+the rows of all poses. The result per pose is exactly `sample_limbs`' (bit-identical; tested).
 Frames: `T_rack_cam` camera in the rack frame; pixels follow OpenCV.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.vision.rack.limbs import LimbSamples, clip_lines_to_view, limb_lines, occluded, sample_limbs
+from companion.vision.rack.limbs import LimbSamples, clip_lines_to_view, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays
+
+BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
 
 __all__ = ["sample_limbs_many"]
 
@@ -37,20 +41,15 @@ def sample_limbs_many(
         return [sample_limbs(T_rack_cam[0], camera, pipes, samples_per_limb, margin_px, min_length_px, z_near_m,
                              occlusion_margin_px)]
     L = 2 * pipes.radii.size
-    A_l, D_l, O_l, smin_l, smax_l, valid_l = [], [], [], [], [], []
-    for T in T_rack_cam:
-        R_rc, o = T[:3, :3], T[:3, 3]
-        lines = limb_lines(o, pipes)
-        A_l.append((lines.point - o) @ R_rc)
-        D_l.append(lines.direction @ R_rc)
-        O_l.append(lines.outward @ R_rc)
-        smin_l.append(lines.s_min)
-        smax_l.append(lines.s_max)
-        valid_l.append(lines.valid)
-    A_cam, D_cam, out_cam = np.concatenate(A_l), np.concatenate(D_l), np.concatenate(O_l)
-    s0, s1 = clip_lines_to_view(A_cam, D_cam, np.concatenate(smin_l), np.concatenate(smax_l), camera, margin_px,
-                                z_near_m)
-    idx = np.flatnonzero(np.concatenate(valid_l) & (s1 > s0))  # rows over all poses: pose * L + limb
+    T_all = np.stack(T_rack_cam)
+    O = T_all[:, :3, 3]
+    R_rc = T_all[:, :3, :3]
+    point, direction, outward, s_min, s_max, valid = _limb_lines_many(O, pipes)
+    A_cam = np.matmul(point - O[:, None, :], R_rc).reshape(-1, 3)  # per pose R_cam_rack (p - o)
+    D_cam = np.matmul(direction[None, :, :], R_rc).reshape(-1, 3)
+    out_cam = np.matmul(outward, R_rc).reshape(-1, 3)
+    s0, s1 = clip_lines_to_view(A_cam, D_cam, s_min.ravel(), s_max.ravel(), camera, margin_px, z_near_m)
+    idx = np.flatnonzero(valid.ravel() & (s1 > s0))  # rows over all poses: pose * L + limb
     if idx.size == 0:
         return [_empty() for _ in range(n_pose)]
     Pa = A_cam[idx] + s0[idx, None] * D_cam[idx]
@@ -116,6 +115,37 @@ def sample_limbs_many(
                                J_uv_pcam=J[a:b], pipe=pipe[a:b], limb=limb[a:b], segments_uv=seg[sa:sb],
                                segment_limb=idx[sa:sb] % L))
     return out
+
+
+def _limb_lines_many(
+    O: FloatArray, pipes: PipeArrays
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
+    """`limbs.limb_lines` seen from K camera centres `O` (K, 3) (the same arithmetic, a leading pose axis):
+    point (K, 2M, 3), direction (2M, 3), outward (K, 2M, 3), s_min, s_max, valid (K, 2M)."""
+    c, v, r = pipes.starts, pipes.directions, pipes.radii
+    a = np.einsum("kmi,mi->km", O[:, None, :] - c[None, :, :], v)
+    p_axis = c[None, :, :] + a[:, :, None] * v[None, :, :]
+    to_axis = p_axis - O[:, None, :]
+    tx, ty, tz = to_axis[..., 0], to_axis[..., 1], to_axis[..., 2]
+    l = np.sqrt(tx * tx + ty * ty + tz * tz)
+    valid = l > r * (1.0 + 1e-9)
+    ls = np.where(valid, l, 1.0)
+    u = to_axis / ls[:, :, None]
+    beta = np.arcsin(np.minimum(np.maximum(r / ls, 0.0), 1.0))
+    delta = np.sqrt(np.maximum(ls * ls - r * r, 0.0))
+    vxu = np.empty_like(u)
+    vxu[..., 0] = v[:, 1] * u[..., 2] - v[:, 2] * u[..., 1]
+    vxu[..., 1] = v[:, 2] * u[..., 0] - v[:, 0] * u[..., 2]
+    vxu[..., 2] = v[:, 0] * u[..., 1] - v[:, 1] * u[..., 0]
+    cb, sb = np.cos(beta), np.sin(beta)
+    dir_l = cb[:, :, None] * u + sb[:, :, None] * vxu
+    dir_r = cb[:, :, None] * u - sb[:, :, None] * vxu
+    point = np.empty((O.shape[0], 2 * c.shape[0], 3))
+    point[:, 0::2] = O[:, None, :] + delta[:, :, None] * dir_l
+    point[:, 1::2] = O[:, None, :] + delta[:, :, None] * dir_r
+    outward = (point - np.repeat(p_axis, 2, axis=1)) / np.repeat(np.where(valid, r, 1.0), 2, axis=1)[:, :, None]
+    return (point, np.repeat(v, 2, axis=0), outward, np.repeat(-a, 2, axis=1),
+            np.repeat(pipes.lengths - a, 2, axis=1), np.repeat(valid, 2, axis=1))
 
 
 def _empty() -> LimbSamples:
