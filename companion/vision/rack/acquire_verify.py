@@ -173,16 +173,36 @@ def check_poses(
         if not pairs:
             break
         # The profiles along the normals are read once; a polarity learnt below only re-picks the edges.
+        n_rows = np.cumsum([0] + [s.uv.shape[0] for _, s in pairs])
         prof = normal_profiles(image_f32, np.concatenate([s.uv for _, s in pairs]),
                                np.concatenate([s.normal_px for _, s in pairs]), int(rng_px), 1.5)
-        meas_all = pick_edges(prof, np.concatenate([st.limb_pol[s.limb] for st, s in pairs]), int(rng_px),
-                              edge_threshold)
-        start = 0
-        for st, s in pairs:
-            stop = start + s.uv.shape[0]
-            _iterate(st, s, prof[start:stop], _rows(meas_all, start, stop), int(rng_px), edge_threshold, inlier_px,
-                     prior8, up_cam, up_weight, height_m, height_weight)
-            start = stop
+        meas = pick_edges(prof, np.concatenate([st.limb_pol[s.limb] for st, s in pairs]), int(rng_px),
+                          edge_threshold)
+        metas = [_rows(meas, n_rows[k], n_rows[k + 1]) for k in range(len(pairs))]
+        again = [k for k, (st, s) in enumerate(pairs) if _learn(st, s, metas[k])]
+        if again:
+            rows = np.concatenate([np.arange(n_rows[k], n_rows[k + 1]) for k in again])
+            meas2 = pick_edges(prof[rows], np.concatenate([pairs[k][0].limb_pol[pairs[k][1].limb] for k in again]),
+                               int(rng_px), edge_threshold)
+            n2 = np.cumsum([0] + [n_rows[k + 1] - n_rows[k] for k in again])
+            for j, k in enumerate(again):
+                metas[k] = _rows(meas2, n2[j], n2[j + 1])
+        # Strong edges per pose; the rows' motion fields and weights once for all poses.
+        fs = [_strong(st.limb_pol[s.limb], m) for (st, s), m in zip(pairs, metas, strict=True)]
+        f_all = np.concatenate([f + n_rows[k] for k, f in enumerate(fs)])
+        J_all = np.concatenate([s.J_uv_pcam for _, s in pairs])
+        p_all = np.concatenate([s.p_cam for _, s in pairs])
+        n_all = np.concatenate([s.normal_px for _, s in pairs])
+        A6 = np.einsum("nij,ni->nj", pose_jacobian(J_all[f_all], p_all[f_all]), n_all[f_all])
+        side_l = [s.limb[f] % 2 for (_, s), f in zip(pairs, fs, strict=True)]
+        r_all = np.concatenate([m.offset_px[f] - st.bias[side]
+                                for (st, _), m, f, side in zip(pairs, metas, fs, side_l, strict=True)])
+        w_all = robust_weights(r_all, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
+        n_f = np.cumsum([0] + [f.size for f in fs])
+        for k, (st, s) in enumerate(pairs):
+            a, b = n_f[k], n_f[k + 1]
+            _solve(st, s, fs[k], A6[a:b], side_l[k], r_all[a:b], w_all[a:b], prior8, up_cam, up_weight, height_m,
+                   height_weight)
     return [st.result if st.result is not None else _verdict(st, M, inlier_px) for st in states]
 
 
@@ -203,44 +223,46 @@ def _rows(meas: EdgeMeasurements, start: int, stop: int) -> EdgeMeasurements:
                             sign=meas.sign[start:stop], strength=meas.strength[start:stop])
 
 
-def _iterate(st: _Refinement, s: LimbSamples, prof: Any, meas: EdgeMeasurements, rng_px: int, edge_threshold: float,
-             inlier_px: float, prior8: FloatArray, up_cam: FloatArray | None, up_weight: float,
-             height_m: float | None, height_weight: float) -> None:
-    """One Gauss-Newton iteration of `check_pose` on the pose's samples `s` and their edges `meas`."""
-    M2 = st.limb_pol.size
-    limb_pol, learn, bias, T = st.limb_pol, st.learn, st.bias, st.T
-    pol = limb_pol[s.limb]
-    if np.any(learn):
-        # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
-        good = meas.found & learn[s.limb]
-        tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=M2)
-        mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=M2)
-        decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
-        limb_pol = np.where(decided, np.sign(tot), limb_pol)
-        learn = learn & ~decided
-        if np.any(decided):
-            pol = limb_pol[s.limb]
-            meas = pick_edges(prof, pol, rng_px, edge_threshold)
-    # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
+def _learn(st: _Refinement, s: LimbSamples, meas: EdgeMeasurements) -> bool:
+    """Limbs of unknown polarity take the gradient sign most of their strongest edges show (the tracker
+    learns it too); True when one did (its edges are then picked again)."""
+    if not st.learn.any():
+        return False
+    good = meas.found & st.learn[s.limb]
+    tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=st.learn.size)
+    mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=st.learn.size)
+    decided = st.learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
+    st.limb_pol = np.where(decided, np.sign(tot), st.limb_pol)
+    st.learn = st.learn & ~decided
+    return bool(decided.any())
+
+
+def _strong(pol: FloatArray, meas: EdgeMeasurements) -> Any:
+    """Rows whose edge is found and strong: a limb is a large step, texture and ground rarely reach a
+    fraction of it (a fifth of the 90th percentile on limbs of known polarity, a tenth on the others)."""
     found = meas.found
     ref = found & (pol != 0.0)
-    if not np.any(ref):
+    if not ref.any():
         ref = found
-    if np.any(ref):
+    if ref.any():
         frac = np.where(pol != 0.0, 0.2, 0.1)
         found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
-    f = np.flatnonzero(found)
-    J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
+    return np.flatnonzero(found)
+
+
+def _solve(st: _Refinement, s: LimbSamples, f: Any, A6: FloatArray, side: Any, r: FloatArray, w: FloatArray,
+           prior8: FloatArray, up_cam: FloatArray | None, up_weight: float, height_m: float | None,
+           height_weight: float) -> None:
+    """One Gauss-Newton step of `check_pose` on the pose's strong edge rows `f` (motion fields `A6` on
+    their normals, limb side, residual and weight)."""
+    T = st.T
     # The edge rows, then the autopilot's tilt (3 rows) and height (1 row) when given, in one array.
     n_up = 3 if up_cam is not None and up_weight > 0 else 0
     n_h = 1 if height_m is not None and height_weight > 0 else 0
     A_all = np.zeros((f.size + n_up + n_h, 8))
     A = A_all[: f.size]
-    A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
-    side = s.limb[f] % 2
+    A[:, :6] = A6
     A[np.arange(f.size), 6 + side] = 1.0
-    r = meas.offset_px[f] - bias[side]
-    w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
     r_all = np.empty(A_all.shape[0])
     w_all = np.empty(A_all.shape[0])
     r_all[: f.size] = r
@@ -259,8 +281,7 @@ def _iterate(st: _Refinement, s: LimbSamples, prof: Any, meas: EdgeMeasurements,
         w_all[-1] = height_weight
     x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
     st.T = T @ se3.exp_one(x[:6])
-    st.bias = bias + x[6:]
-    st.limb_pol, st.learn = limb_pol, learn
+    st.bias = st.bias + x[6:]
     st.last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": (A * w[:, None]).T @ A}
 
 
