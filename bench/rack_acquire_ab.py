@@ -11,6 +11,8 @@ every hypothesis its direction, pipes, y_observed, score and pose (largest diffe
 Usage:
   python bench/rack_acquire_ab.py --cache /tmp/views.pkl --views 120 --appearance both   # render
   python bench/rack_acquire_ab.py --cache /tmp/views.pkl --old ../base --new . [--repeat 3]
+  python bench/rack_acquire_ab.py --cache /tmp/views.pkl --run . --count 240 --profile          # cProfile
+  valgrind --tool=callgrind python bench/rack_acquire_ab.py --cache /tmp/views.pkl --run . --count 40
 """
 
 from __future__ import annotations
@@ -77,6 +79,37 @@ def worker(root: str, path: str) -> None:
         hyps = [{"reversed": h.reversed, "pipes": list(h.pipes), "y_observed": h.y_observed, "score": h.score,
                  "T": np.asarray(h.T_rack_cam).tolist()} for h in res.hypotheses]
         print(json.dumps({"ms": ms, "confident": res.confident, "status": res.status, "hyps": hyps}), flush=True)
+
+
+def run(root: str, path: str, count: int, profile: bool) -> None:
+    """One warm-up call, then `acquire_rack` on the first `count` cached attempts of checkout `root`
+    (for `valgrind --tool=callgrind`: instructions with `count` minus with 0), under cProfile when asked."""
+    sys.path.insert(0, root)
+    import cProfile
+    import pstats
+
+    import cv2
+
+    from companion.camera import PinholeCamera
+    from companion.vision.rack import acquire_rack
+
+    cv2.setNumThreads(1)
+    sys.path.insert(0, os.path.join(root, "bench"))
+    import rack_acquire
+
+    models = dict(rack_acquire.racks())
+    cam = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+    with open(path, "rb") as f:
+        cases = pickle.load(f)["cases"]
+    acquire_rack(cases[0]["img"], models[cases[0]["rack"]], cam, cases[0]["prior"])
+    prof = cProfile.Profile() if profile else None
+    if prof is not None:
+        prof.enable()
+    for c in cases[:count]:
+        acquire_rack(c["img"], models[c["rack"]], cam, c["prior"])
+    if prof is not None:
+        prof.disable()
+        pstats.Stats(prof).sort_stats("cumulative").print_stats(40)
 
 
 def compare(a: dict[str, Any], b: dict[str, Any]) -> tuple[bool, float, float]:
@@ -165,9 +198,14 @@ def main() -> None:
     ap.add_argument("--new")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--worker")
+    ap.add_argument("--run", help="checkout root: run the first --count attempts (for callgrind / --profile)")
+    ap.add_argument("--count", type=int, default=40)
+    ap.add_argument("--profile", action="store_true")
     args = ap.parse_args()
     if args.worker:
         worker(args.worker, args.cache)
+    elif args.run:
+        run(args.run, args.cache, args.count, args.profile)
     elif args.old and args.new:
         ab(args.cache, args.old, args.new, args.repeat)
     else:
