@@ -22,6 +22,9 @@ locked. Confident wrong = confident with a wrong assignment. No lock = not confi
 over the attempts where at least two parallel pipes are fully in view (both limbs inside the
 image over at least 150 px, after occlusion) and, separately, over all attempts.
 
+The attempts come from `view_cases` (in order; `bench/rack_acquire_ab.py` renders the same ones to
+compare two implementations on them).
+
 Usage: python bench/rack_acquire.py [--views 500] [--appearance default|field|both] [--seed 1]
                                     [--yaw-std-deg 20]
 """
@@ -40,6 +43,7 @@ import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
 from typing import Any  # noqa: E402
 
 import cv2  # noqa: E402
@@ -115,28 +119,21 @@ def random_view(rng: np.random.Generator, model: RackModel) -> tuple[np.ndarray,
     return T, float(roll), float(pitch), float(yaw)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--views", type=int, default=500)
-    ap.add_argument("--appearance", choices=("default", "field", "both"), default="both")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--yaw-std-deg", type=float, default=20.0)
-    args = ap.parse_args()
-    cv2.setNumThreads(1)
-    kinds = ["default", "field"] if args.appearance == "both" else [args.appearance]
+def view_cases(views: int, appearance: str, seed: int, yaw_std_deg: float) -> Iterator[dict[str, Any]]:
+    """The seeded attempts in order: per view, one rendered image per appearance, with its prior and truth
+    (keys view, rack, model, appearance, T, prior, img, n_full, pitch_min)."""
+    kinds = ["default", "field"] if appearance == "both" else [appearance]
     field_cls = field_scene_class() if "field" in kinds else None
     rack_list = racks()
     scenes: dict[tuple[int, str], Any] = {}
-    rows: list[dict[str, Any]] = []
-    t_start = time.perf_counter()
-    for i in range(args.views):
-        rng = np.random.default_rng([args.seed, i])
+    for i in range(views):
+        rng = np.random.default_rng([seed, i])
         ri = i % len(rack_list)
         name, model = rack_list[ri]
         T, roll, pitch, yaw = random_view(rng, model)
         n_full = fully_in_view(T, model)
         meas_h = T[2, 3] * (1.0 + 0.05 * rng.standard_normal())
-        yaw_std = np.deg2rad(args.yaw_std_deg)
+        yaw_std = np.deg2rad(yaw_std_deg)
         prior = AcquisitionPrior(
             roll_rad=roll + np.deg2rad(1.0) * rng.standard_normal(),
             pitch_rad=pitch + np.deg2rad(1.0) * rng.standard_normal(),
@@ -157,32 +154,52 @@ def main() -> None:
                     cls, cfg_cls = field_cls
                     scenes[key] = cls(model, seed=100 + ri, config=cfg_cls(ground=FIELD_GROUNDS[i % 3]))
             img = scenes[key].render(T, CAMERA, noise_std=NOISE_STD, rng=rng)
-            t0 = time.perf_counter()
-            res = acquire_rack(img, model, CAMERA, prior)
-            dt_ms = (time.perf_counter() - t0) * 1e3
-            row: dict[str, Any] = {"view": i, "rack": name, "appearance": key[1], "n_full": n_full, "ms": dt_ms,
-                                   "confident": res.confident, "n_hyp": len(res.hypotheses), "status": res.status,
-                                   "assign_ok": False, "locked": False, "track_ms": None}
-            best = res.best
-            if best is not None:
-                row["score"] = best.score
-                row["assign_ok"] = bool(not best.reversed and abs(best.T_rack_cam[0, 3] - T[0, 3]) < pitch_min / 2)
-                tr = RackTracker(model, CAMERA, RackTrackerConfig())
-                tr.reset(best.T_rack_cam)
-                t1 = time.perf_counter()
-                est = tr.track(img, 0.0)
-                row["track_ms"] = (time.perf_counter() - t1) * 1e3
-                E = se3.inverse(T) @ est.T_rack_cam
-                d = est.T_rack_cam[:3, 3] - T[:3, 3]
-                rot_deg = float(np.rad2deg(np.linalg.norm(so3.log(E[:3, :3]))))
-                row.update(dx_m=float(d[0]), dz_m=float(d[2]), rot_deg=rot_deg, y_err_m=float(d[1]),
-                           y_observed=best.y_observed, y_std_m=float(np.sqrt(max(
-                               float(best.T_rack_cam[1, :3] @ best.covariance[:3, :3] @ best.T_rack_cam[1, :3]),
-                               0.0))))
-                row["locked"] = bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)
-            rows.append(row)
-        if (i + 1) % 20 == 0:
-            print(f"{i + 1}/{args.views} views, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
+            yield {"view": i, "rack": name, "model": model, "appearance": key[1], "T": T, "prior": prior,
+                   "img": img, "n_full": n_full, "pitch_min": pitch_min}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--views", type=int, default=500)
+    ap.add_argument("--appearance", choices=("default", "field", "both"), default="both")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--yaw-std-deg", type=float, default=20.0)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+    rows: list[dict[str, Any]] = []
+    t_start = time.perf_counter()
+    last_view = -1
+    for case in view_cases(args.views, args.appearance, args.seed, args.yaw_std_deg):
+        i, model, T, prior, img = case["view"], case["model"], case["T"], case["prior"], case["img"]
+        if i != last_view and i % 20 == 0 and i > 0:
+            print(f"{i}/{args.views} views, {time.perf_counter() - t_start:.0f} s", file=sys.stderr)
+        last_view = i
+        t0 = time.perf_counter()
+        res = acquire_rack(img, model, CAMERA, prior)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        row: dict[str, Any] = {"view": i, "rack": case["rack"], "appearance": case["appearance"],
+                               "n_full": case["n_full"], "ms": dt_ms, "confident": res.confident,
+                               "n_hyp": len(res.hypotheses), "status": res.status, "assign_ok": False,
+                               "locked": False, "track_ms": None}
+        best = res.best
+        if best is not None:
+            row["score"] = best.score
+            row["assign_ok"] = bool(not best.reversed
+                                    and abs(best.T_rack_cam[0, 3] - T[0, 3]) < case["pitch_min"] / 2)
+            tr = RackTracker(model, CAMERA, RackTrackerConfig())
+            tr.reset(best.T_rack_cam)
+            t1 = time.perf_counter()
+            est = tr.track(img, 0.0)
+            row["track_ms"] = (time.perf_counter() - t1) * 1e3
+            E = se3.inverse(T) @ est.T_rack_cam
+            d = est.T_rack_cam[:3, 3] - T[:3, 3]
+            rot_deg = float(np.rad2deg(np.linalg.norm(so3.log(E[:3, :3]))))
+            row.update(dx_m=float(d[0]), dz_m=float(d[2]), rot_deg=rot_deg, y_err_m=float(d[1]),
+                       y_observed=best.y_observed, y_std_m=float(np.sqrt(max(
+                           float(best.T_rack_cam[1, :3] @ best.covariance[:3, :3] @ best.T_rack_cam[1, :3]),
+                           0.0))))
+            row["locked"] = bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)
+        rows.append(row)
     print(json.dumps(summary(rows, args), indent=1))
 
 

@@ -166,6 +166,36 @@ def test_pattern_matching_every_run_of_pipes_in_view_either_direction(run: tuple
             np.testing.assert_allclose(g_o / seen_g, scale.mean(), atol=0.35)
 
 
+@pytest.mark.parametrize("sign", [1, -1])
+@pytest.mark.parametrize("run", _runs(5))
+def test_pattern_matching_every_subset_of_the_pipes_in_view_seen(run: tuple[int, ...], sign: int) -> None:
+    """A camera above the rack sees a contiguous run of pipes (those in its field of view); any subset of
+    them may show its limbs (the others' lost to rust, shadow or an occluder: pipes 0, 2 and 4 seen of
+    0-4). For every subset the true placement is proposed, with exactly the seen pipes as its pipes and
+    the unseen limbs counted as predicted but unexplained."""
+    model = five_pipes()
+    pa = model.pipe_arrays()
+    x_axes, r = pa.starts[:5, 0], pa.radii[:5]
+    X_true, Z_true = float(np.mean(x_axes[list(run)])) + 0.1, 2.5
+    th, _ = predict_limb_angles(np.array([X_true]), np.array([Z_true]), np.zeros(1), np.array([float(sign)]),
+                                x_axes, r)
+    in_view = np.concatenate([2 * np.asarray(run), 2 * np.asarray(run) + 1])
+    theta_range = (float(th[0, in_view].min()) - 0.01, float(th[0, in_view].max()) + 0.01)
+    for k in range(1, len(run) + 1):
+        for seen in itertools.combinations(run, k):
+            obs = np.sort(th[0, np.concatenate([2 * np.asarray(seen), 2 * np.asarray(seen) + 1])])
+            limbs = LimbClusters(theta=obs, polarity=np.tile([1.0, -1.0], len(seen)),
+                                 length_px=np.full(obs.size, 300.0), contrast=np.full(obs.size, 50.0),
+                                 d=np.array([0.0, 1.0, 0.0]), e_x=np.array([1.0, 0.0, 0.0]),
+                                 e_z=np.array([0.0, 0.0, -1.0]))
+            hyps = section_hypotheses(limbs, x_axes, r, Z_true, 0.05 * Z_true, (1, -1), theta_range,
+                                      lambda t: np.full(np.shape(t), 300.0), 8.0 / 630.0, 40.0, 0.0175, 40, 0.05)
+            true = [h for h in hyps if h.sign == sign and abs(h.x_m - X_true) < 0.01 and abs(h.z_m - Z_true) < 0.02]
+            assert len(true) == 1, f"seen {seen}: the true placement must be among the hypotheses"
+            assert true[0].pipes == (seen if sign > 0 else seen[::-1])
+            assert true[0].score == pytest.approx(len(seen) / len(run))
+
+
 # ---------------------------------------------------------------------------------------------- geometry
 def test_up_axis_jacobian_matches_central_differences(rng: np.random.Generator) -> None:
     T = se3.exp(rng.normal(size=6))

@@ -42,6 +42,7 @@ from companion.vision.rack.acquire_lines import (
 from companion.vision.rack.acquire_match import section_hypotheses
 from companion.vision.rack.acquire_profile import (
     PencilProfile,
+    image_gradient,
     pencil_profile,
     profile_scores,
     refine_on_peaks,
@@ -55,7 +56,7 @@ from companion.vision.rack.acquire_types import (
 )
 from companion.vision.rack.acquire_verify import (
     EdgeCheck,
-    check_pose,
+    check_poses,
     crossing_y_candidates,
     pose_covariance,
     subset_pipes,
@@ -67,13 +68,19 @@ __all__ = ["AcquisitionConfig", "AcquisitionPrior", "AcquisitionResult", "RackHy
 
 @dataclass(frozen=True)
 class _Candidate:
-    """A proposed pose with what is needed to score it against the profile of its direction."""
+    """A proposed cross-section position (x, z, roll about the pipes) with what is needed to score it
+    against the profile of its direction; its pose is formed only when it is checked."""
 
-    T_rack_cam: FloatArray
+    x_m: float
+    z_m: float
+    alpha_rad: float
     sign: int
     polarity: int  # +1 pipes brighter than around them, -1 darker, 0 unknown
     prelim: float
     direction: int  # index into the per-direction tables
+
+    def pose(self, dirs: list[_Direction], y_m: float) -> FloatArray:
+        return _pose_from_section(self.x_m, self.z_m, self.alpha_rad, self.sign, dirs[self.direction].limbs, y_m)
 
 
 @dataclass(frozen=True)
@@ -113,16 +120,25 @@ def _pose_from_section(x_m: float, z_m: float, alpha_rad: float, sign: int, limb
     return se3.make((U @ Vt).T, np.array([x_m, y_m, z_m]))
 
 
-def _explained(di: _Direction, T: FloatArray, sign: int, x_axes: FloatArray, radii: FloatArray,
-               cfg: AcquisitionConfig) -> float:
-    """Share of the direction's profile peaks that the pose's limbs explain."""
+def _explained(dirs: list[_Direction], poses: list[tuple[int, FloatArray, int]], x_axes: FloatArray,
+               radii: FloatArray, cfg: AcquisitionConfig) -> list[float]:
+    """Share of its direction's profile peaks that each pose's limbs explain; `poses` (direction index,
+    T_rack_cam, sign), scored one direction at a time."""
     tol = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
-    # The refined pose's roll about the pipes relative to the profile's basis (see _pose_from_section).
-    u = T[2, :3]
-    alpha = np.array([np.arctan2(-(u @ di.limbs.e_x), u @ di.limbs.e_z)])
-    _, ex = profile_scores(di.profile, np.array([T[0, 3]]), np.array([T[2, 3]]), np.array([float(sign)]), x_axes,
-                           radii, di.theta_range, di.visible_length, tol, cfg.min_limb_px, alpha)
-    return float(ex[0])
+    out = [0.0] * len(poses)
+    for k in sorted({p[0] for p in poses}):
+        di = dirs[k]
+        sel = [i for i, p in enumerate(poses) if p[0] == k]
+        T = np.stack([poses[i][1] for i in sel])
+        u = T[:, 2, :3]
+        # The refined pose's roll about the pipes relative to the profile's basis (see _pose_from_section).
+        alpha = np.array([np.arctan2(-(ui @ di.limbs.e_x), ui @ di.limbs.e_z) for ui in u])
+        _, ex = profile_scores(di.profile, T[:, 0, 3].copy(), T[:, 2, 3].copy(),
+                               np.array([float(poses[i][2]) for i in sel]), x_axes, radii, di.theta_range,
+                               di.visible_length, tol, cfg.min_limb_px, alpha)
+        for i, e in zip(sel, ex, strict=True):
+            out[i] = float(e)
+    return out
 
 
 def acquire_rack(
@@ -164,26 +180,36 @@ def acquire_rack(
     # in view) that looks the same both ways must come out ambiguous, not as the first one found.
     for sign in {c.sign for c in cands} - {c.sign for c in to_check}:
         to_check.append(next(c for c in cands if c.sign == sign))
-    for c in to_check:
-        # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
-        # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
-        chk = check_pose(img_f, camera, par,
-                         c.T_rack_cam, np.full(n_par, -float(c.polarity)), cfg.check_ranges_px, cfg.samples_per_limb,
-                         cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
-                         prior.height_m, h_weight)
+
+    def check(Ts: list[FloatArray], pols: list[FloatArray], extra: bool, polish: bool) -> list[EdgeCheck]:
+        """`check_pose` of the poses side by side (all pipes when `extra`; the polish ranges when `polish`)."""
+        return check_poses(img_f, camera, pipes_all if extra else par, Ts, pols,
+                           cfg.polish_ranges_px if polish else cfg.check_ranges_px, cfg.samples_per_limb,
+                           cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0 if polish else damping,
+                           up_cam, up_weight, prior.height_m, h_weight)
+
+    # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
+    # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.
+    T_cs = [c.pose(dirs, prior.y_m) for c in to_check]
+    chks = check(T_cs, [np.full(n_par, -float(c.polarity)) for c in to_check], False, False)
+    again: list[tuple[int, FloatArray, FloatArray]] = []
+    for i, (c, T_c, chk) in enumerate(zip(to_check, T_cs, chks, strict=True)):
         if not credible(chk, cfg, prior, up_cam, n_par) and n_all > n_par:
             # A crossing pipe in view hides limbs and its own limbs cross theirs: place it (y from
             # the segments along it) and check again with every pipe.
-            ys = crossing_y_candidates(seg, c.T_rack_cam, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
+            ys = crossing_y_candidates(seg, T_c, pipes_all, np.arange(n_par, n_all), y_lo, y_hi,
                                        cfg.direction_tol_rad, 0.03, 1)
             if ys.size:
-                T_y = c.T_rack_cam.copy()
+                T_y = T_c.copy()
                 T_y[1, 3] = ys[0]
-                pol = np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])
-                chk = check_pose(img_f, camera, pipes_all, T_y, pol, cfg.check_ranges_px, cfg.samples_per_limb,
-                                 cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping, up_cam, up_weight,
-                                 prior.height_m, h_weight)
-        explained = _explained(dirs[c.direction], chk.T_rack_cam, c.sign, x_axes, radii, cfg)
+                again.append((i, T_y, np.concatenate([np.full(n_par, -float(c.polarity)), np.zeros(n_all - n_par)])))
+    if again:
+        for (i, _, _), chk in zip(again, check([a[1] for a in again], [a[2] for a in again], True, False),
+                                  strict=True):
+            chks[i] = chk
+    poses = [(c.direction, chk.T_rack_cam, c.sign) for c, chk in zip(to_check, chks, strict=True)]
+    explained_all = _explained(dirs, poses, x_axes, radii, cfg)
+    for c, chk, explained in zip(to_check, chks, explained_all, strict=True):
         if not credible(chk, cfg, prior, up_cam, n_par):
             # Kept as a rival: a near-miss that fits about as well forbids confidence in another pose.
             rivals.append((chk.agree_fraction * explained, c.sign, chk.T_rack_cam, num_limbs_ok(chk, cfg, n_par)))
@@ -192,21 +218,19 @@ def acquire_rack(
     checked.sort(key=lambda sc: -sc[0])
     # Polish the contenders: the lateral position and the roll about the pipes are nearly
     # interchangeable from high above, and converge slowly under the per-iteration damping.
-    polished: list[tuple[float, int, EdgeCheck]] = []
-    for score, sign, chk, k in checked:
-        if checked and score >= cfg.ambiguity_ratio * checked[0][0] * 0.9:
-            with_extra = chk.pipe_samples.size > n_par  # checked with the crossing pipe placed
-            pol = np.full(n_par, -float(_polarity_of(chk, n_par)))
-            if with_extra:
-                pol = np.concatenate([pol, np.zeros(n_all - n_par)])
-            chk2 = check_pose(img_f, camera, pipes_all if with_extra else par, chk.T_rack_cam, pol,
-                              cfg.polish_ranges_px, cfg.samples_per_limb,
-                              cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0, up_cam, up_weight,
-                              prior.height_m, h_weight)
-            if credible(chk2, cfg, prior, up_cam, n_par):
-                score = chk2.agree_fraction * _explained(dirs[k], chk2.T_rack_cam, sign, x_axes, radii, cfg)
-                chk = chk2
-        polished.append((score, sign, chk))
+    polished: list[tuple[float, int, EdgeCheck]] = [(score, sign, chk) for score, sign, chk, _ in checked]
+    todo = [i for i, (score, _, _, _) in enumerate(checked) if score >= cfg.ambiguity_ratio * checked[0][0] * 0.9]
+    for extra in (False, True):  # checked with the crossing pipe placed or not
+        group = [i for i in todo if (checked[i][2].pipe_samples.size > n_par) == extra]
+        if not group:
+            continue
+        pols = [np.concatenate([np.full(n_par, -float(_polarity_of(checked[i][2], n_par))),
+                                np.zeros(n_all - n_par if extra else 0)]) for i in group]
+        chk2s = check([checked[i][2].T_rack_cam for i in group], pols, extra, True)
+        ok = [(i, chk2) for i, chk2 in zip(group, chk2s, strict=True) if credible(chk2, cfg, prior, up_cam, n_par)]
+        ex2 = _explained(dirs, [(checked[i][3], chk2.T_rack_cam, checked[i][1]) for i, chk2 in ok], x_axes, radii, cfg)
+        for (i, chk2), e in zip(ok, ex2, strict=True):
+            polished[i] = (chk2.agree_fraction * e, checked[i][1], chk2)
     polished.sort(key=lambda sc: -sc[0])
     if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
         # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
@@ -238,6 +262,7 @@ def _propose(
     dirs: list[_Direction] = []
     cands: list[_Candidate] = []
     num_limbs = 0
+    gradient = None
     for d0 in direction_candidates(seg, up_cam, np.deg2rad(1.0), cfg.max_directions, np.deg2rad(15.0)):
         d, inl = refine_direction(seg, d0, up_cam, cfg.direction_tol_rad)
         limbs = limb_clusters(seg, inl, d, up_cam, camera, cfg.merge_px / f_px)
@@ -247,25 +272,29 @@ def _propose(
             continue
         th_range = image_theta_range(camera, limbs)
         grid = np.linspace(th_range[0], th_range[1], 181)
-        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px), th_range, grid,
-                        visible_length_px(camera, limbs, grid))
+        gradient = gradient or image_gradient(small)  # once per image
+        di = _Direction(limbs, pencil_profile(small, camera, limbs, cfg.profile_bin_px / f_px, gradient), th_range,
+                        grid, visible_length_px(camera, limbs, grid))
         k = len(dirs)
         dirs.append(di)
         tol_bins = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
-        for sh in sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
-                                cfg.max_swept_hypotheses, cfg.distinct_m):
-            x, z, a = refine_on_peaks(di.profile, limbs, sh, x_axes, radii, th_range, prior.height_m,
-                                      prior.height_std_m, cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
-            cands.append(_Candidate(_pose_from_section(x, z, a, sh.sign, limbs, prior.y_m), sh.sign, 0, sh.score, k))
+        swept = sweep_section(di.profile, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                              di.visible_length, cfg.sweep_step_m, tol_bins, cfg.min_limb_px,
+                              cfg.max_swept_hypotheses, cfg.distinct_m)
+        refined = refine_on_peaks(di.profile, swept, x_axes, radii, th_range, prior.height_m, prior.height_std_m,
+                                  cfg.alpha_std_rad, cfg.sweep_tol_px / f_px, 1.0 / f_px)
+        for sh, (x, z, a) in zip(swept, refined, strict=True):
+            cands.append(_Candidate(float(x), float(z), float(a), sh.sign, 0, sh.score, k))
         if limbs.theta.size >= 2:
-            for h in section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
-                                        di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
-                                        cfg.max_section_hypotheses, cfg.distinct_m):
-                ev, ex = profile_scores(di.profile, np.array([h.x_m]), np.array([h.z_m]), np.array([float(h.sign)]),
-                                        x_axes, radii, th_range, di.visible_length, tol_bins, cfg.min_limb_px)
-                cands.append(_Candidate(_pose_from_section(h.x_m, h.z_m, h.alpha_rad, h.sign, limbs, prior.y_m),
-                                        h.sign, h.polarity, float(ev[0] * ex[0]), k))
+            hyps = section_hypotheses(limbs, x_axes, radii, prior.height_m, prior.height_std_m, signs, th_range,
+                                      di.visible_length, cfg.match_px / f_px, cfg.min_limb_px, cfg.alpha_std_rad,
+                                      cfg.max_section_hypotheses, cfg.distinct_m)
+            if hyps:
+                ev, ex = profile_scores(di.profile, np.array([h.x_m for h in hyps]), np.array([h.z_m for h in hyps]),
+                                        np.array([float(h.sign) for h in hyps]), x_axes, radii, th_range,
+                                        di.visible_length, tol_bins, cfg.min_limb_px)
+                for h, e, x in zip(hyps, ev, ex, strict=True):
+                    cands.append(_Candidate(h.x_m, h.z_m, h.alpha_rad, h.sign, h.polarity, float(e * x), k))
     return dirs, cands, num_limbs
 
 
@@ -292,8 +321,7 @@ def _signs(d: FloatArray, R0: FloatArray, prior: AcquisitionPrior, cfg: Acquisit
 def _dedupe(cands: list[_Candidate], sep_m: float) -> list[_Candidate]:
     out: list[_Candidate] = []
     for c in cands:
-        if all(c.sign != o.sign or abs(c.T_rack_cam[0, 3] - o.T_rack_cam[0, 3]) >= sep_m
-               or abs(c.T_rack_cam[2, 3] - o.T_rack_cam[2, 3]) >= 2 * sep_m for o in out):
+        if all(c.sign != o.sign or abs(c.x_m - o.x_m) >= sep_m or abs(c.z_m - o.z_m) >= 2 * sep_m for o in out):
             out.append(c)
     return out
 
@@ -315,12 +343,14 @@ def _finish(
         ys = crossing_y_candidates(seg, T, pipes_all, np.arange(n_par, n_all), prior.y_m - span, prior.y_m + span,
                                    cfg.direction_tol_rad, 0.03, 3)
         passed: list[tuple[float, EdgeCheck]] = []
+        Tys = []
         for y in ys:
             Ty = T.copy()
             Ty[1, 3] = y
-            c = check_pose(img_f, camera, pipes_all, Ty, np.zeros(n_all), cfg.check_ranges_px,
-                           cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
-                           up_cam, up_weight, prior.height_m, h_weight)
+            Tys.append(Ty)
+        for c in check_poses(img_f, camera, pipes_all, Tys, [np.zeros(n_all)] * len(Tys), cfg.check_ranges_px,
+                             cfg.samples_per_limb, cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping,
+                             up_cam, up_weight, prior.height_m, h_weight):
             # Both limbs of a crossing pipe must agree: one limb alone fits many positions.
             ls, la = c.limb_samples[2 * n_par:], c.limb_agree[2 * n_par:]
             seen = ls >= cfg.samples_per_limb / 2

@@ -18,6 +18,8 @@ Gauss-Newton on (X, Z, alpha) with the height and attitude as priors.
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,9 +72,11 @@ def predict_limb_angles(
     th[:, 1::2] = phi + beta + alpha[:, None]
     # A limb is hidden when it lies inside the angular interval of a nearer pipe.
     lo, hi = th[:, 0::2], th[:, 1::2]  # (C, M)
-    inside = (th[:, :, None] > lo[:, None, :]) & (th[:, :, None] < hi[:, None, :])  # (C, 2M, M)
-    nearer = np.repeat(l, 2, axis=1)[:, :, None] > l[:, None, :]
-    visible = ~np.any(inside & nearer, axis=2) & (l > radii[None, :] * 1.001).repeat(2, axis=1)
+    l2 = np.repeat(l, 2, axis=1)
+    hidden = np.zeros(th.shape, dtype=bool)
+    for m in range(M):
+        hidden |= (th > lo[:, m : m + 1]) & (th < hi[:, m : m + 1]) & (l2 > l[:, m : m + 1])
+    visible = ~hidden & (l > radii[None, :] * 1.001).repeat(2, axis=1)
     return th, visible
 
 
@@ -161,33 +165,57 @@ def refine_section(
     angle_std_rad: float, iterations: int = 3,
 ) -> tuple[float, float, float]:
     """Gauss-Newton on (X, Z, alpha) over the matched limbs (`matches` (2M,), -1 = none), with the
-    height and a zero roll correction as priors; central-difference Jacobian (3 parameters)."""
-    sel = np.flatnonzero(matches >= 0)
-    if sel.size == 0:
-        return X, Z, alpha
-    obs = limbs.theta[matches[sel]]
-    p = np.array([X, Z, alpha])
-    s = np.array([sign])
+    height and a zero roll correction as priors (`refine_sections` for one hypothesis)."""
+    p = refine_sections(np.array([[X, Z, alpha]]), np.array([float(sign)]), matches[None, :], limbs.theta,
+                        x_axes, radii, height_m, height_std_m, alpha_std_rad, angle_std_rad, iterations)
+    return float(p[0, 0]), float(p[0, 1]), float(p[0, 2])
+
+
+def refine_sections(
+    P0: FloatArray, sign: FloatArray, matches: IntArray, obs_theta: FloatArray, x_axes: FloatArray,
+    radii: FloatArray, height_m: float, height_std_m: float, alpha_std_rad: float, angle_std_rad: float,
+    iterations: int = 3,
+) -> FloatArray:
+    """Gauss-Newton on (X, Z, alpha) (C, 3) of C hypotheses at once, each over its matched limbs
+    (`matches` (C, 2M) indices into `obs_theta`, -1 = none), with the height and a zero roll correction
+    as priors; central-difference Jacobian (3 parameters). A hypothesis stops when its step in (X, Z)
+    falls below 1e-5 m; one without a matched limb is returned unchanged."""
+    P = np.array(P0, dtype=np.float64, copy=True)
+    sel = matches >= 0  # (C, 2M)
+    obs = np.where(sel, obs_theta[np.maximum(matches, 0)] if obs_theta.size else 0.0, 0.0)
+    active = np.flatnonzero(sel.any(axis=1))
     prior_w = np.array([0.0, 1.0 / height_std_m**2, 1.0 / alpha_std_rad**2])
     prior_mean = np.array([0.0, height_m, 0.0])
     h = np.array([1e-5, 1e-5, 1e-6])
+    steps = np.vstack([np.zeros(3), np.diag(h), -np.diag(h)])  # (7, 3): the centre and the six +/- steps
+    inv_var = 1.0 / angle_std_rad**2
     for _ in range(iterations):
-        # Evaluate the centre and the six +/- steps in one call.
-        P = np.vstack([p, p + np.diag(h), p - np.diag(h)])
-        th, _ = predict_limb_angles(P[:, 0], P[:, 1], P[:, 2], np.repeat(s, 7), x_axes, radii)
-        th = th[:, sel]
-        r = obs - th[0]
-        J = ((th[1:4] - th[4:7]) / (2.0 * h[:, None])).T  # (n, 3)
-        H = J.T @ J / angle_std_rad**2 + np.diag(prior_w)
-        g = J.T @ r / angle_std_rad**2 + prior_w * (prior_mean - p)
+        if active.size == 0:
+            break
+        n = active.size
+        Q = (P[active, None, :] + steps[None, :, :]).reshape(-1, 3)
+        th, _ = predict_limb_angles(Q[:, 0], Q[:, 1], Q[:, 2], np.repeat(sign[active], 7), x_axes, radii)
+        th = th.reshape(n, 7, -1)
+        m = sel[active]
+        r = np.where(m, obs[active] - th[:, 0], 0.0)  # (n, 2M)
+        J = np.where(m[:, :, None], ((th[:, 1:4] - th[:, 4:7]) / (2.0 * h[None, :, None])).transpose(0, 2, 1),
+                     0.0)  # (n, 2M, 3)
+        H = np.einsum("cki,ckj->cij", J, J) * inv_var + np.diag(prior_w) + 1e-9 * np.eye(3)
+        g = np.einsum("cki,ck->ci", J, r) * inv_var + prior_w * (prior_mean - P[active])
         try:
-            step = np.linalg.solve(H + 1e-9 * np.eye(3), g)
+            step = np.linalg.solve(H, g[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:
-            break
-        p = p + step
-        if np.abs(step[0]) + np.abs(step[1]) < 1e-5:
-            break
-    return float(p[0]), float(p[1]), float(p[2])
+            step = np.zeros((n, 3))
+            ok = np.ones(n, dtype=bool)
+            for k in range(n):
+                try:
+                    step[k] = np.linalg.solve(H[k], g[k])
+                except np.linalg.LinAlgError:
+                    ok[k] = False
+            step, active = step[ok], active[ok]
+        P[active] += step
+        active = active[np.abs(step[:, 0]) + np.abs(step[:, 1]) >= 1e-5]
+    return P
 
 
 def section_hypotheses(
@@ -203,31 +231,45 @@ def section_hypotheses(
     A0 = np.zeros(X.size)
     score, _, _, _ = score_hypotheses(X, Z, A0, S, P, limbs, x_axes, radii, theta_range, visible_length,
                                       tol_rad, min_length_px)
-    order = np.argsort(-score)
+    def anchors_to_refine() -> Iterator[int]:
+        """The anchors in score order, one per neighbourhood (fixed by the anchors alone)."""
+        tried: list[tuple[float, float, float]] = []
+        for c in np.argsort(-score):
+            if score[c] <= 0.0:
+                return
+            if any(s == S[c] and abs(x - X[c]) < merge_m and abs(z - Z[c]) < 2 * merge_m for x, z, s in tried):
+                continue
+            tried.append((float(X[c]), float(Z[c]), float(S[c])))
+            yield int(c)
+
+    todo = anchors_to_refine()
     out: list[SectionHypothesis] = []
-    tried: list[tuple[float, float, float]] = []
-    for c in order:
-        if len(out) >= max_hypotheses or score[c] <= 0.0:
+    while len(out) < max_hypotheses:
+        # Refined in batches of as many as may still be kept (a refined one may merge into a kept one).
+        batch = np.fromiter(itertools.islice(todo, max_hypotheses - len(out)), dtype=np.intp)
+        if batch.size == 0:
             break
-        if any(s == S[c] and abs(x - X[c]) < merge_m and abs(z - Z[c]) < 2 * merge_m for x, z, s in tried):
-            continue
-        tried.append((float(X[c]), float(Z[c]), float(S[c])))
-        x, z, a = float(X[c]), float(Z[c]), 0.0
+        Sb, Pb = S[batch], P[batch]
+        Q = np.column_stack([X[batch], Z[batch], np.zeros(batch.size)])
         for _ in range(2):  # match, refine, re-match
-            _, k, _, _ = score_hypotheses(np.array([x]), np.array([z]), np.array([a]), S[c:c + 1], P[c:c + 1],
-                                          limbs, x_axes, radii, theta_range, visible_length, tol_rad, min_length_px)
-            x, z, a = refine_section(x, z, a, float(S[c]), k[0], limbs, x_axes, radii, height_m, height_std_m,
-                                     alpha_std_rad, 2.5 * tol_rad / 6.0)
-        sc, k, th, cov = score_hypotheses(np.array([x]), np.array([z]), np.array([a]), S[c:c + 1], P[c:c + 1],
-                                        limbs, x_axes, radii, theta_range, visible_length, tol_rad, min_length_px)
-        both = (k[0, 0::2] >= 0) & (k[0, 1::2] >= 0)
-        pipes = np.flatnonzero(both)
-        pipes = pipes[np.argsort(th[0, 2 * pipes])]
-        hyp = SectionHypothesis(x_m=x, z_m=z, alpha_rad=a, sign=int(S[c]), polarity=int(P[c]), score=float(sc[0]),
-                                coverage=float(cov[0]), pipes=tuple(int(m) for m in pipes),
-                                matched_limbs=int(np.count_nonzero(k[0] >= 0)))
-        if any(h.sign == hyp.sign and abs(h.x_m - x) < merge_m and abs(h.z_m - z) < 2 * merge_m for h in out):
-            continue
-        out.append(hyp)
+            _, k, _, _ = score_hypotheses(Q[:, 0], Q[:, 1], Q[:, 2], Sb, Pb, limbs, x_axes, radii, theta_range,
+                                          visible_length, tol_rad, min_length_px)
+            Q = refine_sections(Q, Sb, k, limbs.theta, x_axes, radii, height_m, height_std_m, alpha_std_rad,
+                                2.5 * tol_rad / 6.0)
+        sc, k, th, cov = score_hypotheses(Q[:, 0], Q[:, 1], Q[:, 2], Sb, Pb, limbs, x_axes, radii, theta_range,
+                                          visible_length, tol_rad, min_length_px)
+        for b in range(batch.size):
+            if len(out) >= max_hypotheses:
+                break
+            x, z, a = (float(v) for v in Q[b])
+            both = (k[b, 0::2] >= 0) & (k[b, 1::2] >= 0)
+            pipes = np.flatnonzero(both)
+            pipes = pipes[np.argsort(th[b, 2 * pipes])]
+            hyp = SectionHypothesis(x_m=x, z_m=z, alpha_rad=a, sign=int(Sb[b]), polarity=int(Pb[b]),
+                                    score=float(sc[b]), coverage=float(cov[b]), pipes=tuple(int(m) for m in pipes),
+                                    matched_limbs=int(np.count_nonzero(k[b] >= 0)))
+            if any(h.sign == hyp.sign and abs(h.x_m - x) < merge_m and abs(h.z_m - z) < 2 * merge_m for h in out):
+                continue
+            out.append(hyp)
     out.sort(key=lambda h: -h.score)
     return out

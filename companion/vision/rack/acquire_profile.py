@@ -16,7 +16,7 @@ angles in radians; lengths in metres.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -24,10 +24,12 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.acquire_edges import percentile
 from companion.vision.rack.acquire_lines import LimbClusters
-from companion.vision.rack.acquire_match import predict_limb_angles, refine_section
+from companion.vision.rack.acquire_match import predict_limb_angles, refine_sections
 
 GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
+Float32Image = np.ndarray[Any, np.dtype[np.float32]]
 
 
 @functools.lru_cache(maxsize=8)
@@ -54,29 +56,54 @@ class PencilProfile:
     ref: float
     peak_theta: FloatArray
     peak_value: FloatArray
+    _dilated: dict[int, FloatArray] = field(default_factory=dict, compare=False, repr=False)
 
     def at(self, theta: FloatArray, tol_bins: int) -> FloatArray:
         """Largest profile value within `tol_bins` bins of each angle (0 outside the profile)."""
         b = np.round((theta - self.theta0) / self.bin_rad).astype(np.intp)
-        v = self.value
-        n = v.size
-        if tol_bins > 0:
-            pad = np.concatenate([np.zeros(tol_bins), v, np.zeros(tol_bins)])
-            stack = np.stack([pad[k : k + n] for k in range(2 * tol_bins + 1)])
-            v = stack.max(axis=0)
+        n = self.value.size
+        v = self._dilated.get(tol_bins)
+        if v is None:  # the running maximum, once per profile and tolerance
+            v = self.value
+            if tol_bins > 0:
+                pad = np.concatenate([np.zeros(tol_bins), v, np.zeros(tol_bins)])
+                stack = np.stack([pad[k : k + n] for k in range(2 * tol_bins + 1)])
+                v = stack.max(axis=0)
+            self._dilated[tol_bins] = v
         inside = (b >= 0) & (b < n)
         return np.where(inside, v[np.clip(b, 0, n - 1)], 0.0)
 
+    def claimed_peaks(self, theta: FloatArray, use: Any, tol_rad: float) -> Any:
+        """(C, P) whether each peak lies within `tol_rad` of one of the angles `theta` (C, L) where `use` (C, L).
 
-def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float) -> PencilProfile:
-    """The profile of `small` (the image resized, any scale) for the pipe direction and basis of `limbs`."""
+        Peaks are local maxima, at least two bins apart: only the few nearest each angle are compared."""
+        P = self.peak_theta.size
+        C = theta.shape[0]
+        if P == 0:
+            return np.zeros((C, P), dtype=bool)
+        n_side = int(tol_rad / (2.0 * self.bin_rad)) + 2
+        idx = np.searchsorted(self.peak_theta, theta)[None, :, :] + np.arange(-n_side, n_side)[:, None, None]
+        ok = use[None, :, :] & (idx >= 0) & (idx < P)
+        ok &= np.abs(self.peak_theta[np.clip(idx, 0, P - 1)] - theta[None, :, :]) <= tol_rad
+        flat = (np.arange(C)[None, :, None] * P + idx)[ok]
+        return np.bincount(flat, minlength=C * P).reshape(C, P) > 0
+
+
+def image_gradient(small: GrayImage) -> tuple[Float32Image, Float32Image]:
+    """The grey-level gradient (x, y) of `small` (levels per px, Sobel), shared by the directions' profiles."""
+    img = small.astype(np.float32)
+    return cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) * 0.125, cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) * 0.125
+
+
+def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters, bin_rad: float,
+                   gradient: tuple[Float32Image, Float32Image] | None = None) -> PencilProfile:
+    """The profile of `small` (the image resized, any scale) for the pipe direction and basis of `limbs`;
+    `gradient` its `image_gradient` when already computed."""
     h, w = small.shape
     rays = _pixel_rays(camera, w, h)
     # The angle of a pixel's ray in the cross-section; its component along the pipes does not matter.
     theta = np.arctan2(rays @ limbs.e_z, rays @ limbs.e_x).astype(np.float32)
-    img = small.astype(np.float32)
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3) * 0.125
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3) * 0.125
+    gx, gy = image_gradient(small) if gradient is None else gradient
     tx = cv2.Sobel(theta, cv2.CV_32F, 1, 0, ksize=3)
     ty = cv2.Sobel(theta, cv2.CV_32F, 0, 1, ksize=3)
     tn = np.sqrt(tx * tx + ty * ty) + np.float32(1e-12)
@@ -89,7 +116,7 @@ def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters,
     # Lines that cross only a corner of the image have few pixels: weak evidence, not a peak.
     value = np.where(cnt >= 0.25 * min(h, w), tot / np.maximum(cnt, 1.0), 0.0)
     value = np.asarray(np.convolve(value, np.array([0.25, 0.5, 0.25]), mode="same"))
-    ref = float(np.percentile(value[value > 0], 99)) if np.any(value > 0) else 0.0
+    ref = percentile(value[value > 0], 99) if np.any(value > 0) else 0.0
     is_peak = np.zeros(n_bins, dtype=bool)
     is_peak[1:-1] = (value[1:-1] >= value[:-2]) & (value[1:-1] > value[2:]) & (value[1:-1] >= 0.5 * ref)
     pk = np.flatnonzero(is_peak)
@@ -132,8 +159,7 @@ def profile_scores(
     evidence = np.where(tot_L > 0, (ev * L).sum(axis=1) / np.maximum(tot_L, 1e-9), 0.0)
     if profile.peak_theta.size == 0:
         return evidence, np.zeros(X.size)
-    near = np.abs(profile.peak_theta[None, None, :] - th[:, :, None]) <= (tol_bins + 1) * profile.bin_rad
-    claimed = (near & in_view[:, :, None]).any(axis=1)  # (C, P)
+    claimed = profile.claimed_peaks(th, in_view, (tol_bins + 1) * profile.bin_rad)  # (C, P)
     explained = (claimed * profile.peak_value[None, :]).sum(axis=1) / profile.peak_value.sum()
     return evidence, explained
 
@@ -158,50 +184,54 @@ def sweep_section(
     sc = score.reshape(n_x, n_z, n_s)
     iz = sc.argmax(axis=1)  # (n_x, n_s)
     best = np.take_along_axis(sc, iz[:, None, :], axis=1)[:, 0, :]
-    out: list[SweptHypothesis] = []
+    ix_l, si_l = [], []
     for si in range(n_s):
         col = best[:, si]
         peak = np.zeros(n_x, dtype=bool)
         peak[1:-1] = (col[1:-1] >= col[:-2]) & (col[1:-1] > col[2:]) & (col[1:-1] > 0)
-        for ix in np.flatnonzero(peak):
-            flat = (ix * n_z + iz[ix, si]) * n_s + si
-            out.append(SweptHypothesis(x_m=float(xs[ix]), z_m=float(zs[iz[ix, si]]), sign=int(signs[si]),
-                                       score=float(col[ix]), evidence=float(evidence[flat]),
-                                       explained=float(explained[flat])))
-    out.sort(key=lambda h: -h.score)
+        at = np.flatnonzero(peak)
+        ix_l.append(at)
+        si_l.append(np.full(at.size, si))
+    ix_all, si_all = np.concatenate(ix_l), np.concatenate(si_l)
+    peak_score = best[ix_all, si_all]
     kept: list[SweptHypothesis] = []
-    for h in out:
+    # Best first (ties in sign-then-x order, as a stable sort of the peaks), at least separation_m apart.
+    for j in np.argsort(-peak_score, kind="stable"):
         if len(kept) >= max_hypotheses:
             break
-        if all(h.sign != k.sign or abs(h.x_m - k.x_m) >= separation_m for k in kept):
-            kept.append(h)
+        ix, si = int(ix_all[j]), int(si_all[j])
+        x, sign = float(xs[ix]), int(signs[si])
+        if all(sign != k.sign or abs(x - k.x_m) >= separation_m for k in kept):
+            flat = (ix * n_z + iz[ix, si]) * n_s + si
+            kept.append(SweptHypothesis(x_m=x, z_m=float(zs[iz[ix, si]]), sign=sign, score=float(peak_score[j]),
+                                        evidence=float(evidence[flat]), explained=float(explained[flat])))
     return kept
 
 
 def refine_on_peaks(
-    profile: PencilProfile, limbs: LimbClusters, h: SweptHypothesis, x_axes: FloatArray, radii: FloatArray,
+    profile: PencilProfile, hyps: list[SweptHypothesis], x_axes: FloatArray, radii: FloatArray,
     theta_range: tuple[float, float], height_m: float, height_std_m: float, alpha_std_rad: float, tol_rad: float,
     angle_std_rad: float,
-) -> tuple[float, float, float]:
-    """(x, z, alpha) of a swept position refined by Gauss-Newton on the profile peaks its limbs fall on.
+) -> FloatArray:
+    """(x, z, alpha) (C, 3) of swept positions refined by Gauss-Newton on the profile peaks their limbs
+    fall on (all C at once).
 
     The sweep's grid is coarse in height (one std); the limb widths, hence the distance, need the
     peaks' positions, and a start a few centimetres off in height sends the edge check astray.
     """
+    P = np.array([[h.x_m, h.z_m, 0.0] for h in hyps], dtype=np.float64).reshape(-1, 3)
     peaks = profile.peak_theta
-    if peaks.size == 0:
-        return h.x_m, h.z_m, 0.0
-    peak_limbs = LimbClusters(theta=peaks, polarity=np.zeros(peaks.size), length_px=profile.peak_value,
-                              contrast=profile.peak_value, d=limbs.d, e_x=limbs.e_x, e_z=limbs.e_z)
-    x, z, a = h.x_m, h.z_m, 0.0
+    if peaks.size == 0 or not hyps:
+        return P
+    S = np.array([float(h.sign) for h in hyps])
     # Coarse to fine: a height a few per cent off moves the outer limbs by more than the final tolerance.
     for tol in (2.5 * tol_rad, tol_rad):
-        th, vis = predict_limb_angles(np.array([x]), np.array([z]), np.array([a]), np.array([float(h.sign)]),
-                                      x_axes, radii)
-        err = np.abs(th[0][:, None] - peaks[None, :])
-        k = np.argmin(err, axis=1)
-        ok = vis[0] & (th[0] > theta_range[0]) & (th[0] < theta_range[1]) & (err[np.arange(k.size), k] <= tol)
+        th, vis = predict_limb_angles(P[:, 0], P[:, 1], P[:, 2], S, x_axes, radii)
+        err = np.abs(th[:, :, None] - peaks[None, None, :])  # (C, 2M, P)
+        k = np.argmin(err, axis=2)
+        e = np.take_along_axis(err, k[:, :, None], axis=2)[:, :, 0]
+        ok = vis & (th > theta_range[0]) & (th < theta_range[1]) & (e <= tol)
         matches = np.where(ok, k, -1).astype(np.intp)
-        x, z, a = refine_section(x, z, a, float(h.sign), matches, peak_limbs, x_axes, radii, height_m,
-                                 height_std_m, alpha_std_rad, angle_std_rad)
-    return x, z, a
+        P = refine_sections(P, S, matches, peaks, x_axes, radii, height_m, height_std_m, alpha_std_rad,
+                            angle_std_rad)
+    return P

@@ -1,7 +1,8 @@
 """Rack acquisition, step 3: check and refine a pose hypothesis with the tracker's edge measurement.
 
-The limbs are rendered and sampled by `limbs.sample_limbs` and searched along their normals by
-`edges.search_edges`, exactly as `RackTracker` does; the rows are the tracker's motion fields
+The limbs are rendered and sampled by `limbs.sample_limbs` and searched along their normals as
+`edges.search_edges` does (`acquire_edges`: the same search, its profiles read once per
+iteration), exactly as `RackTracker` does; the rows are the tracker's motion fields
 (`motion.pose_jacobian`) solved by `motion.solve_normal_equations` with `motion.robust_weights`.
 A few iterations with a shrinking search range refine the pose; the verdict is the fraction of
 the predicted limb samples whose edge is found (strong, of the hypothesis' polarity) and agrees
@@ -21,9 +22,11 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.geometry import se3
+from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
 from companion.vision.rack.acquire_lines import Segments
-from companion.vision.rack.edges import search_edges
-from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.acquire_samples import sample_limbs_many
+from companion.vision.rack.edges import EdgeMeasurements
+from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import median_1d, pose_jacobian, robust_weights, solve_normal_equations
 
@@ -129,71 +132,162 @@ def check_pose(
     limbs of known polarity (a tenth on the others: a pipe lying on pipes shows a weak step):
     texture, noise and shading never reach a fraction of a real silhouette.
     """
-    T = np.array(T_rack_cam, dtype=np.float64, copy=True)
+    return check_poses(image_f32, camera, pipes, [T_rack_cam], [pipe_polarity], ranges_px, samples_per_limb,
+                       edge_threshold, inlier_px, margin_px, damping, up_cam, up_weight, height_m, height_weight)[0]
+
+
+def check_poses(
+    image_f32: Float32Image,
+    camera: PinholeCamera,
+    pipes: PipeArrays,
+    T_rack_cam: list[FloatArray],
+    pipe_polarity: list[FloatArray],
+    ranges_px: tuple[int, ...],
+    samples_per_limb: int,
+    edge_threshold: float,
+    inlier_px: float,
+    margin_px: float,
+    damping: FloatArray,
+    up_cam: FloatArray | None = None,
+    up_weight: float = 0.0,
+    height_m: float | None = None,
+    height_weight: float = 0.0,
+) -> list[EdgeCheck]:
+    """`check_pose` of several poses (with their polarities) side by side: each pose's iterations are its
+    own, the limb sampling and the edge search of an iteration run once over the samples of all poses."""
     M = pipes.radii.size
-    last: dict[str, Any] = {}
-    # Per-limb polarity: the pipe's where known, else learnt from the first iteration's edges.
-    limb_pol = np.repeat(np.asarray(pipe_polarity, dtype=np.float64), 2)
-    learn = limb_pol == 0.0
-    bias = np.zeros(2)
+    states = [_Refinement(np.array(T, dtype=np.float64, copy=True), np.repeat(np.asarray(pol, dtype=np.float64), 2))
+              for T, pol in zip(T_rack_cam, pipe_polarity, strict=True)]
     prior8 = np.concatenate([damping, [1.0 / 1.0**2] * 2])
     for rng_px in ranges_px:
-        s = sample_limbs(T, camera, pipes, samples_per_limb, margin_px, 12.0, 0.1, 3.0)
-        n = s.uv.shape[0]
-        if n == 0:
-            return EdgeCheck(T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M), limb_pol,
-                             np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
-        pol = limb_pol[s.limb]
-        meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
-                            tangent_offset_px=1.5)
-        if np.any(learn):
-            # A limb keeps the gradient sign most of its strongest edges show (the tracker learns it too).
-            good = meas.found & learn[s.limb]
-            tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=2 * M)
-            mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=2 * M)
-            decided = learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
-            limb_pol = np.where(decided, np.sign(tot), limb_pol)
-            learn = learn & ~decided
-            if np.any(decided):
-                pol = limb_pol[s.limb]
-                meas = search_edges(image_f32, s.uv, s.normal_px, pol, int(rng_px), edge_threshold,
-                                    tangent_offset_px=1.5)
-        # Strong edges only: a limb is a large step, texture and ground rarely reach a fraction of it.
-        found = meas.found
-        ref = found & (pol != 0.0)
-        if not np.any(ref):
-            ref = found
-        if np.any(ref):
-            frac = np.where(pol != 0.0, 0.2, 0.1)
-            found = found & (meas.strength >= frac * float(np.percentile(meas.strength[ref], 90)))
-        f = np.flatnonzero(found)
-        J6 = pose_jacobian(s.J_uv_pcam[f], s.p_cam[f])
-        A = np.zeros((f.size, 8))
-        A[:, :6] = np.einsum("nij,ni->nj", J6, s.normal_px[f])
-        side = s.limb[f] % 2
-        A[np.arange(f.size), 6 + side] = 1.0
-        r = meas.offset_px[f] - bias[side]
-        w = robust_weights(r, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
-        A_all, r_all, w_all = A, r, w
-        if up_cam is not None and up_weight > 0:
-            u, J_up = up_axis_with_jacobian(T)
-            A_up = np.zeros((3, 8))
-            A_up[:, :6] = J_up
-            A_all = np.vstack([A, A_up])
-            r_all = np.concatenate([r, up_cam - u])
-            w_all = np.concatenate([w, np.full(3, up_weight)])
-        if height_m is not None and height_weight > 0:
-            # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
-            A_h = np.zeros((1, 8))
-            A_h[0, :3] = T[2, :3]
-            A_all = np.vstack([A_all, A_h])
-            r_all = np.concatenate([r_all, [height_m - T[2, 3]]])
-            w_all = np.concatenate([w_all, [height_weight]])
-        x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
-        T = T @ se3.exp_one(x[:6])
-        bias = bias + x[6:]
-        H_data = (A * w[:, None]).T @ A
-        last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": H_data}
+        active = [st for st in states if st.result is None]
+        if not active:
+            break
+        samples = sample_limbs_many([st.T for st in active], camera, pipes, samples_per_limb, margin_px, 12.0, 0.1,
+                                    3.0)
+        for st, s in zip(active, samples, strict=True):
+            if s.uv.shape[0] == 0:
+                st.result = EdgeCheck(st.T, 0, 0.0, np.zeros(M), np.zeros(M), np.zeros(2 * M), np.zeros(2 * M),
+                                      st.limb_pol, np.zeros(2 * M), float("inf"), np.zeros((8, 8)), 0.0)
+        pairs = [(st, s) for st, s in zip(active, samples, strict=True) if st.result is None]
+        if not pairs:
+            break
+        # The profiles along the normals are read once; a polarity learnt below only re-picks the edges.
+        n_rows = np.cumsum([0] + [s.uv.shape[0] for _, s in pairs])
+        prof = normal_profiles(image_f32, np.concatenate([s.uv for _, s in pairs]),
+                               np.concatenate([s.normal_px for _, s in pairs]), int(rng_px), 1.5)
+        meas = pick_edges(prof, np.concatenate([st.limb_pol[s.limb] for st, s in pairs]), int(rng_px),
+                          edge_threshold)
+        metas = [_rows(meas, n_rows[k], n_rows[k + 1]) for k in range(len(pairs))]
+        again = [k for k, (st, s) in enumerate(pairs) if _learn(st, s, metas[k])]
+        if again:
+            rows = np.concatenate([np.arange(n_rows[k], n_rows[k + 1]) for k in again])
+            meas2 = pick_edges(prof[rows], np.concatenate([pairs[k][0].limb_pol[pairs[k][1].limb] for k in again]),
+                               int(rng_px), edge_threshold)
+            n2 = np.cumsum([0] + [n_rows[k + 1] - n_rows[k] for k in again])
+            for j, k in enumerate(again):
+                metas[k] = _rows(meas2, n2[j], n2[j + 1])
+        # Strong edges per pose; the rows' motion fields and weights once for all poses.
+        fs = [_strong(st.limb_pol[s.limb], m) for (st, s), m in zip(pairs, metas, strict=True)]
+        f_all = np.concatenate([f + n_rows[k] for k, f in enumerate(fs)])
+        J_all = np.concatenate([s.J_uv_pcam for _, s in pairs])
+        p_all = np.concatenate([s.p_cam for _, s in pairs])
+        n_all = np.concatenate([s.normal_px for _, s in pairs])
+        A6 = np.einsum("nij,ni->nj", pose_jacobian(J_all[f_all], p_all[f_all]), n_all[f_all])
+        side_l = [s.limb[f] % 2 for (_, s), f in zip(pairs, fs, strict=True)]
+        r_all = np.concatenate([m.offset_px[f] - st.bias[side]
+                                for (st, _), m, f, side in zip(pairs, metas, fs, side_l, strict=True)])
+        w_all = robust_weights(r_all, "paper", 1.0, max(2.0 * inlier_px, float(rng_px)))
+        n_f = np.cumsum([0] + [f.size for f in fs])
+        for k, (st, s) in enumerate(pairs):
+            a, b = n_f[k], n_f[k + 1]
+            _solve(st, s, fs[k], A6[a:b], side_l[k], r_all[a:b], w_all[a:b], prior8, up_cam, up_weight, height_m,
+                   height_weight)
+    return [st.result if st.result is not None else _verdict(st, M, inlier_px) for st in states]
+
+
+class _Refinement:
+    """One pose's state through `check_poses`' iterations."""
+
+    def __init__(self, T: FloatArray, limb_pol: FloatArray) -> None:
+        self.T = T
+        self.limb_pol = limb_pol  # per limb: the pipe's where known, else learnt from the first iteration's edges
+        self.learn = limb_pol == 0.0
+        self.bias = np.zeros(2)
+        self.last: dict[str, Any] = {}
+        self.result: EdgeCheck | None = None
+
+
+def _rows(meas: EdgeMeasurements, start: int, stop: int) -> EdgeMeasurements:
+    return EdgeMeasurements(offset_px=meas.offset_px[start:stop], found=meas.found[start:stop],
+                            sign=meas.sign[start:stop], strength=meas.strength[start:stop])
+
+
+def _learn(st: _Refinement, s: LimbSamples, meas: EdgeMeasurements) -> bool:
+    """Limbs of unknown polarity take the gradient sign most of their strongest edges show (the tracker
+    learns it too); True when one did (its edges are then picked again)."""
+    if not st.learn.any():
+        return False
+    good = meas.found & st.learn[s.limb]
+    tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=st.learn.size)
+    mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=st.learn.size)
+    decided = st.learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
+    st.limb_pol = np.where(decided, np.sign(tot), st.limb_pol)
+    st.learn = st.learn & ~decided
+    return bool(decided.any())
+
+
+def _strong(pol: FloatArray, meas: EdgeMeasurements) -> Any:
+    """Rows whose edge is found and strong: a limb is a large step, texture and ground rarely reach a
+    fraction of it (a fifth of the 90th percentile on limbs of known polarity, a tenth on the others)."""
+    found = meas.found
+    ref = found & (pol != 0.0)
+    if not ref.any():
+        ref = found
+    if ref.any():
+        frac = np.where(pol != 0.0, 0.2, 0.1)
+        found = found & (meas.strength >= frac * percentile_90(meas.strength[ref]))
+    return np.flatnonzero(found)
+
+
+def _solve(st: _Refinement, s: LimbSamples, f: Any, A6: FloatArray, side: Any, r: FloatArray, w: FloatArray,
+           prior8: FloatArray, up_cam: FloatArray | None, up_weight: float, height_m: float | None,
+           height_weight: float) -> None:
+    """One Gauss-Newton step of `check_pose` on the pose's strong edge rows `f` (motion fields `A6` on
+    their normals, limb side, residual and weight)."""
+    T = st.T
+    # The edge rows, then the autopilot's tilt (3 rows) and height (1 row) when given, in one array.
+    n_up = 3 if up_cam is not None and up_weight > 0 else 0
+    n_h = 1 if height_m is not None and height_weight > 0 else 0
+    A_all = np.zeros((f.size + n_up + n_h, 8))
+    A = A_all[: f.size]
+    A[:, :6] = A6
+    A[np.arange(f.size), 6 + side] = 1.0
+    r_all = np.empty(A_all.shape[0])
+    w_all = np.empty(A_all.shape[0])
+    r_all[: f.size] = r
+    w_all[: f.size] = w
+    if n_up:
+        assert up_cam is not None
+        u, J_up = up_axis_with_jacobian(T)
+        A_all[f.size : f.size + 3, :6] = J_up
+        r_all[f.size : f.size + 3] = up_cam - u
+        w_all[f.size : f.size + 3] = up_weight
+    if n_h:
+        assert height_m is not None
+        # z(T exp(δ)) ≈ z + R[2, :] v: one row on the translation.
+        A_all[-1, :3] = T[2, :3]
+        r_all[-1] = height_m - T[2, 3]
+        w_all[-1] = height_weight
+    x, _, _ = solve_normal_equations(A_all, r_all, w_all, prior8)
+    st.T = T @ se3.exp_one(x[:6])
+    st.bias = st.bias + x[6:]
+    st.last = {"s": s, "f": f, "A": A, "r": r, "w": w, "x": x, "H": (A * w[:, None]).T @ A}
+
+
+def _verdict(st: _Refinement, M: int, inlier_px: float) -> EdgeCheck:
+    """The check of a refined pose: its last iteration's samples, edges and solution."""
+    last = st.last
     s, f = last["s"], last["f"]
     r_post = last["r"] - last["A"] @ last["x"]
     agree_rows = np.abs(r_post) <= inlier_px
@@ -208,14 +302,14 @@ def check_pose(
     scale2 = float(np.sum(w * r_post**2) / dof)
     resid = 1.4826 * median_1d(np.abs(r_post[agree_rows])) if np.any(agree_rows) else float("inf")
     return EdgeCheck(
-        T_rack_cam=T,
+        T_rack_cam=st.T,
         num_samples=int(s.uv.shape[0]),
         agree_fraction=float(agree.mean()),
         pipe_samples=pipe_samples,
         pipe_agree=pipe_agree,
         limb_samples=limb_samples,
         limb_agree=limb_agree,
-        limb_polarity=limb_pol,
+        limb_polarity=st.limb_pol,
         limb_run=_longest_runs(s.limb, agree, 2 * M),
         residual_px=float(resid),
         H_data=last["H"],
