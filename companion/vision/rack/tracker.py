@@ -130,7 +130,7 @@ class RackTrackerConfig:
     edge_threshold: float = 8.0
     edge_profile_px: int = 8
     edge_silhouette_px: int = 6
-    edge_silhouette_max_rms: float = 0.05
+    edge_silhouette_max_rms: float = 0.08
     ground_points: int = 60
     ground_weight: float = 1.0
     ground_along_only: bool = False
