@@ -16,7 +16,8 @@ hypothesis had the right assignment), confident with a wrong assignment, or righ
 off after the first tracked frame. Outcomes: `confident` or not; the pipe
 assignment is right when the best hypothesis has the true direction of travel and its x is
 within half the narrowest pipe pitch of the truth (a wrong pipe or direction moves it by a whole
-pitch or flips it); it locks when `RackTracker.reset(best) + track(same image)` ends within
+pitch or flips it); it locks when `RackTracker.reset(best) + track(same image)` (the daemon's tracker
+settings, `DAEMON_RACK_TRACKER`: it is the daemon that takes over an acquired pose) ends within
 3 cm in x and z and 1 deg in attitude of the truth. Correct = confident, assignment right and
 locked. Confident wrong = confident with a wrong assignment. No lock = not confident. Rates are
 over the attempts where at least two parallel pipes are fully in view (both limbs inside the
@@ -52,6 +53,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from companion.camera import PinholeCamera  # noqa: E402
+from companion.daemon.wiring import DAEMON_RACK_TRACKER  # noqa: E402
 from companion.geometry import frames, se3, so3  # noqa: E402
 from companion.sim.rack_scene import RackScene  # noqa: E402
 from companion.vision.rack import (  # noqa: E402
@@ -186,7 +188,8 @@ def main() -> None:
             row["score"] = best.score
             row["assign_ok"] = bool(not best.reversed
                                     and abs(best.T_rack_cam[0, 3] - T[0, 3]) < case["pitch_min"] / 2)
-            tr = RackTracker(model, CAMERA, RackTrackerConfig())
+            # the daemon's tracker takes over an acquired pose: check with its settings
+            tr = RackTracker(model, CAMERA, RackTrackerConfig(**DAEMON_RACK_TRACKER))
             tr.reset(best.T_rack_cam)
             t1 = time.perf_counter()
             est = tr.track(img, 0.0)
