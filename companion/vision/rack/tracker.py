@@ -812,6 +812,7 @@ class RackTracker:
         self._polarity_known |= seen
 
     def _reset_ground(self) -> None:
+        self._silhouettes_pred: list[FloatArray] | None = None  # pipes' silhouettes at this frame's prediction
         self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
         self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
         self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
@@ -840,6 +841,7 @@ class RackTracker:
         # Points a pipe moves over between the frames (parallax; a pipe entering the view) would be
         # tracked on its cladding: keep those clear of the pipes at the predicted pose.
         polygons = pipe_silhouettes(T_pred, self.camera, self._pipe_arrays(self._gaps))
+        self._silhouettes_pred = polygons
         ok &= on_ground(uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))
         return self._ground_o, self._ground_d[ok], uv[ok]
 
@@ -867,7 +869,11 @@ class RackTracker:
             ground_uv = last.get("ground_uv")
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
                 keep_uv = ground_uv[ok]
-        polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
+        # the predicted pose's silhouettes (computed for tracking) are close enough for the margin
+        polygons = self._silhouettes_pred
+        if polygons is None:
+            polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
+        self._silhouettes_pred = None
         if keep_uv.shape[0]:
             # A pipe sweeps over the ground next to it as the camera moves (parallax): a ground point at
             # its limb is tracked onto the pipe's cladding and pulls z_g up towards the pipes. Drop
@@ -880,7 +886,9 @@ class RackTracker:
             self._z_g_var = 2.0**2
         need = cfg.ground_points - keep_uv.shape[0]
         new = np.zeros((0, 2))
-        if need >= max(3, cfg.ground_points // 5):
+        # detection (a Shi-Tomasi pass over the image) every `detect_every` frames, unless half are gone
+        due = self._frames % cfg.detect_every == 0 or keep_uv.shape[0] < cfg.ground_points // 2
+        if need >= max(3, cfg.ground_points // 5) and due:
             new = detect_ground_points(gray, polygons, keep_uv, need,
                                        cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
         uv = np.vstack([keep_uv, new])
