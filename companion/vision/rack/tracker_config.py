@@ -1,0 +1,217 @@
+"""Settings and per-frame result of the rack tracker (`RackTracker`, `tracker.py`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.errors import InputError
+
+_ROBUST_KINDS = ("paper", "tukey", "l2")
+
+
+@dataclass(frozen=True)
+class RackTrackerConfig:
+    """Tuning of `RackTracker` (pixels, metres, radians).
+
+    Edges: `samples_per_limb` image-uniform samples per visible limb; `search_range_px` the
+    half-length of the normal search while tracking; on the first frame after `reset` it starts
+    at `init_search_range_m` at the limbs' median depth (widened to three standard deviations of
+    the reset prior, and to `init_search_range_gaps_m` when the gaps are estimated; at most
+    `init_search_range_px`) and
+    shrinks by `init_shrink` per iteration over up to `init_iterations` (coarse to fine, on an
+    image blurred in proportion); `gap_scan` (with `estimate_gaps`): on the first frame after
+    `reset`, each pipe's shift within `init_search_range_gaps_m` is found first by its limb pair
+    (`gap_scan.scan_gaps`), and the first search then covers `init_search_range_m` only; `edge_threshold`
+    the minimum |I(k+1) - I(k-1)| (grey levels); `edge_profile_px` the length of each limb's
+    learned inner edge profile that candidates are matched against (`search_edges`, 0 = off),
+    `edge_profile_rate` its per-frame learning rate; `edge_silhouette_px` > 0 moves each found
+    edge from its gradient peak to the silhouette of a fitted limb profile (`refine_silhouette`,
+    that many px inside, one fewer outside; 0 = off) where the fit's rms residual is within
+    `edge_silhouette_max_rms` of the profile's range (elsewhere the peak is kept: a grating or a
+    beam next to the limb, which the limb model does not describe); `ground_points` the number of ground corners
+    tracked frame to frame as a second reference (plane z = z_g, height estimated online; see
+    `ground.py`; 0 = off), `ground_weight` their rows' weight relative to edge rows,
+    `ground_along_only` lets them inform only the translation along the pipes (and z_g): the limbs
+    alone then fix roll against sideways slide, which a frame-to-frame constraint can only hold
+    (with a wrong z_g, bend) but never correct,
+    `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
+    random walk allowed to z_g; `edge_tangent_px` > 0 averages each
+    profile with two parallel ones that far along the limb (texture next to a straight limb
+    averages out); `blur_sigma_px` an optional Gaussian pre-blur;
+    `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
+    image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
+    Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
+    paper's ν; `gate_px` residuals beyond this are dropped after the first iteration;
+    `max_iterations` / `min_iterations` per frame, stopping when the update is below
+    `stop_translation_m` / `stop_rotation_rad` or moves the rendered edges by less than
+    `stop_px` (median); `prior_*` the standard deviations of the per-iteration damping (a weak
+    prior on the motion that holds unobservable directions); `reset_prior_*` the standard
+    deviations of the pose given to `reset` (a prior on the first frame; raise them, e.g. to
+    0.1 m / 0.05 rad, when the reset pose is rough) and `motion_prior_*`
+    those of the constant-velocity prediction (a prior on every later frame): both only matter
+    in weakly observed directions; after `relock_after_frames` consecutive rejected frames (0 =
+    never) the wide first-frame search runs again from the last pose, with `relock_prior_*` in
+    place of the reset prior (not with `estimate_gaps`); `estimate_gaps` solves the cumulative gaps too;
+    `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
+    measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
+    next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
+    `velocity_prediction` enables the constant-velocity prediction; `unobserved_velocity_tau_s`
+    (s, 0 = off) on frames where nothing observes the translation along the pipes (fewer than
+    three texture and ground points) that component of the velocity is not taken from the pose
+    change (which there is only the prediction itself, so an error would persist and integrate)
+    but decays from its last value with this time constant. `prior_rate_noise_rad`: the
+    per-frame random walk between the vision's attitude and the filtered attitude prior.
+    Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
+    `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
+    `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
+    a point's 3-D position is averaged over (1 = keep the position from the first sighting),
+    `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
+    `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
+    `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
+    patch (from the image it was found in), warped into the current view through the pipe's
+    tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
+    Gauss-Newton steps: frame-to-frame tracking alone drifts by pixels within seconds;
+    points whose aligned patch correlates below `template_min_ncc` are dropped.
+    Health: `min_edge_points` agreeing samples, `min_inlier_fraction`, `max_residual_px`
+    robust residual std, `max_condition` of the normalised information matrix, `inlier_px`
+    agreement threshold; `covariance_inflation` multiplies the covariance (edge samples along
+    one limb are correlated).
+    """
+
+    samples_per_limb: int = 32
+    search_range_px: int = 12
+    init_search_range_px: int = 128
+    init_search_range_m: float = 0.04
+    init_search_range_gaps_m: float = 0.25
+    gap_scan: bool = True
+    init_iterations: int = 16
+    init_shrink: float = 0.8
+    edge_threshold: float = 8.0
+    edge_profile_px: int = 8
+    edge_silhouette_px: int = 6
+    edge_silhouette_max_rms: float = 0.08
+    ground_points: int = 60
+    ground_weight: float = 1.0
+    ground_along_only: bool = False
+    ground_min_corner_ratio: float = 0.0
+    ground_height_walk_m: float = 0.002
+    edge_profile_rate: float = 0.1
+    edge_tangent_px: float = 0.0
+    blur_sigma_px: float = 0.0
+    polarity_rate: float = 0.1
+    margin_px: float = 6.0
+    occlusion_margin_px: float = 3.0
+    robust: str = "paper"
+    nu_px: float = 1.0
+    gate_px: float = 4.0
+    max_iterations: int = 3
+    min_iterations: int = 2
+    stop_translation_m: float = 5e-4
+    stop_rotation_rad: float = 3e-4
+    stop_px: float = 0.15
+    prior_translation_m: float = 0.05
+    prior_rotation_rad: float = 0.02
+    prior_gap_m: float = 0.05
+    reset_prior_translation_m: float = 0.01
+    prior_rate_noise_rad: float = 1e-3
+    reset_prior_rotation_rad: float = 0.002
+    motion_prior_translation_m: float = 0.03
+    motion_prior_rotation_rad: float = 0.01
+    relock_after_frames: int = 3
+    relock_prior_translation_m: float = 0.1
+    relock_prior_rotation_rad: float = 0.02
+    estimate_gaps: bool = False
+    estimate_edge_bias: bool = True
+    edge_bias_rate_px: float = 0.02
+    velocity_prediction: bool = True
+    unobserved_velocity_tau_s: float = 0.3
+    max_texture_points: int = 50
+    texture_weight: float = 2.0
+    detect_every: int = 4
+    lk_window_px: int = 11
+    lk_levels: int = 2
+    texture_max_residual_px: float = 2.5
+    texture_refine_obs: int = 20
+    texture_min_distance_px: float = 12.0
+    texture_min_incidence_cos: float = 0.4
+    texture_min_corner_ratio: float = 10.0
+    texture_templates: bool = True
+    template_half_px: int = 5
+    template_iterations: int = 2
+    template_min_ncc: float = 0.5
+    min_edge_points: int = 20
+    min_inlier_fraction: float = 0.35
+    max_residual_px: float = 3.0
+    max_condition: float = 1e7
+    inlier_px: float = 2.0
+    covariance_inflation: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.robust not in _ROBUST_KINDS:
+            raise InputError(f"robust: expected one of {_ROBUST_KINDS}, got {self.robust!r}")
+        for name in ("samples_per_limb", "search_range_px", "init_search_range_px", "max_iterations",
+                     "init_iterations", "detect_every", "lk_window_px", "template_half_px", "template_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if self.relock_after_frames < 0:
+            raise InputError(f"relock_after_frames: must be >= 0, got {self.relock_after_frames}")
+        if self.max_texture_points < 0:
+            raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
+        if not -1.0 <= self.template_min_ncc <= 1.0:
+            raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
+        for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
+                     "relock_prior_translation_m", "relock_prior_rotation_rad"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class RackEstimate:
+    """Result of `RackTracker.track` for one frame.
+
+    `T_rack_cam` (4x4): camera (OpenCV optical frame) pose in the rack frame; the best pose even
+    when `ok` is false (then it is the motion prediction). `covariance` (6x6): covariance of the
+    pose error as a RIGHT perturbation in the camera frame, twist order (v, w) (m, rad):
+    T_true = T_rack_cam @ se3.exp(delta), delta ~ N(0, covariance). `gaps` (n-1,): cumulative
+    gaps d̄_1..d̄_{n-1} (m) in use (estimated when `estimate_gaps`), `gaps_std_m` their standard
+    deviations (0 when not estimated). `num_edge_points`: edge samples that agree with the final
+    pose (|residual| <= inlier_px); `num_edge_samples`: samples searched; `num_texture_points`:
+    texture points used; `residual_px`: robust standard deviation of the final edge residuals;
+    `iterations`: solver iterations; `status`: "" when ok, else the reason; `condition`: the
+    condition number of the normalised information matrix; `edge_bias_px`: the estimated edge
+    offsets of the two limb sides (px, along the outward normal).
+    """
+
+    stamp_s: float
+    ok: bool
+    T_rack_cam: FloatArray
+    covariance: FloatArray
+    gaps: FloatArray
+    gaps_std_m: FloatArray
+    num_edge_points: int
+    num_edge_samples: int
+    num_texture_points: int
+    residual_px: float
+    iterations: int
+    status: str = ""
+    condition: float = 0.0
+    edge_bias_px: FloatArray = field(default_factory=lambda: np.zeros(2))
+
+
+def _positive(value: float | None, name: str, default: float) -> float:
+    """`value` as a positive finite float, or `default` for None; InputError naming `name` otherwise."""
+    if value is None:
+        return default
+    v = float(value)
+    if not (np.isfinite(v) and v > 0.0):
+        raise InputError(f"{name}: must be positive, got {value}")
+    return v
+
+
+def _readonly(a: FloatArray) -> FloatArray:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.flags.writeable = False
+    return a

@@ -1,0 +1,222 @@
+"""Upkeep of what the rack tracker carries between frames: limb polarities and profiles, ground points, texture map."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.vision.rack.ground import (
+    detect_ground_points,
+    ground_mask,
+    on_ground,
+    pipe_silhouettes,
+    plane_points,
+)
+from companion.vision.rack.limbs import LimbSamples
+from companion.vision.rack.model import PipeArrays
+from companion.vision.rack.templates import align_templates, sample_patches, tangent_plane_warps
+from companion.vision.rack.texture import detect_points, track_points
+from companion.vision.rack.tracker_state import TrackerState
+
+
+class TrackerMaps(TrackerState):
+    """Per-limb learning, the ground reference and the texture map, updated on accepted frames."""
+
+    def _update_polarity(self, samples: LimbSamples, sign: FloatArray, good: Any) -> None:
+        g = np.asarray(good, dtype=bool)
+        if not np.any(g):
+            return
+        limbs = samples.limb[g]
+        n_l = self._polarity.size
+        s = np.bincount(limbs, weights=sign[g], minlength=n_l)
+        c = np.bincount(limbs, minlength=n_l)
+        seen = c >= 3
+        mean = np.where(seen, s / np.maximum(c, 1), 0.0)
+        new = seen & ~self._polarity_known
+        upd = seen & self._polarity_known
+        rate = self.config.polarity_rate
+        self._polarity[new] = mean[new]
+        self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
+        self._polarity_known |= seen
+
+    def _track_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection."""
+        cfg = self.config
+        if cfg.ground_points <= 0 or self._prev_gray is None or self._z_g is None or not self._ground_uv.shape[0]:
+            return None
+        X, _ = plane_points(self._ground_o, self._ground_d, self._z_g)
+        fin = np.all(np.isfinite(X), axis=1)
+        guess = self.camera.project((np.where(fin[:, None], X, 0.0) - T_pred[:3, 3]) @ T_pred[:3, :3])
+        guess = np.where((fin & np.all(np.isfinite(guess), axis=1))[:, None], guess, self._ground_uv)
+        # Exposure steps: bring this image to the previous one's mean level first (LK assumes constant brightness).
+        m_prev = float(self._prev_gray[::8, ::8].mean())
+        m_cur = float(gray[::8, ::8].mean())
+        cur = gray
+        if m_cur > 1.0 and abs(m_prev / m_cur - 1.0) > 0.03:
+            cur = np.asarray(cv2.convertScaleAbs(gray, alpha=m_prev / m_cur), dtype=np.uint8)
+        uv, ok = track_points(self._prev_gray, cur, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
+        ok &= fin & self.camera.in_image(uv, 4.0)
+        # Points a pipe moves over between the frames (parallax; a pipe entering the view) would be
+        # tracked on its cladding: keep those clear of the pipes at the predicted pose.
+        polygons = pipe_silhouettes(T_pred, self.camera, self._pipe_arrays(self._gaps))
+        self._silhouettes_pred = polygons
+        ok &= on_ground(uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))
+        return self._ground_o, self._ground_d[ok], uv[ok]
+
+    def _update_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray
+    ) -> None:
+        """Keep the ground points that fit, add new ones, store their rays from this (accepted) pose."""
+        cfg = self.config
+        if cfg.ground_points <= 0:
+            return
+        keep_uv = np.zeros((0, 2))
+        i_z = int(last["i_z"])
+        if i_z >= 0:
+            # The ground lies below the pipes' support plane, and it does not move: a frame's estimate may
+            # move z_g by at most half its standard deviation (a few bad ground points, or a roll / slide
+            # error leaking into it, otherwise carry it metres within a second: stress bench, p3 fast).
+            z_prev = float(self._z_g) if self._z_g is not None else float(last["z_g"])
+            step = max(0.02, 0.5 * float(np.sqrt(self._z_g_var)))
+            self._z_g = min(float(np.clip(float(last["z_g"]), z_prev - step, z_prev + step)), 0.0)
+            # Posterior variance plus a small random walk (the ground is not flat everywhere).
+            self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
+            n_et = int(last["n_et"])
+            r_g = last["r_post"][n_et : n_et + 2 * last["ground_uv"].shape[0]].reshape(-1, 2)
+            ok = np.linalg.norm(r_g, axis=1) <= cfg.gate_px  # the same gate as the solver's rows
+            ground_uv = last.get("ground_uv")
+            if ground_uv is not None and ground_uv.shape[0] == ok.size:
+                keep_uv = ground_uv[ok]
+        # the predicted pose's silhouettes (computed for tracking) are close enough for the margin
+        polygons = self._silhouettes_pred
+        if polygons is None:
+            polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
+        self._silhouettes_pred = None
+        if keep_uv.shape[0]:
+            # A pipe sweeps over the ground next to it as the camera moves (parallax): a ground point at
+            # its limb is tracked onto the pipe's cladding and pulls z_g up towards the pipes. Drop
+            # points that come within the margin of a pipe.
+            keep_uv = keep_uv[on_ground(keep_uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))]
+        if self._z_g is None:
+            # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
+            top = 2.0 * float(np.max(self.model.radii))
+            self._z_g = top - 2.0 * max(float(T[2, 3]) - top, 0.5)
+            self._z_g_var = 2.0**2
+        need = cfg.ground_points - keep_uv.shape[0]
+        new = np.zeros((0, 2))
+        # detection (a Shi-Tomasi pass over the image) every `detect_every` frames, unless half are gone
+        due = self._frames % cfg.detect_every == 0 or keep_uv.shape[0] < cfg.ground_points // 2
+        if need >= max(3, cfg.ground_points // 5) and due:
+            new = detect_ground_points(gray, polygons, keep_uv, need,
+                                       cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
+        uv = np.vstack([keep_uv, new])
+        self._ground_uv = uv
+        self._ground_o = T[:3, 3].copy()
+        self._ground_d = self.camera.unproject(uv) @ T[:3, :3].T if uv.shape[0] else np.zeros((0, 3))
+
+    def _pipe_polygons(self, samples: LimbSamples) -> list[FloatArray]:
+        """Image quadrilaterals of the pipes between their two clipped limb segments."""
+        polys = []
+        seg_l = samples.segment_limb
+        for pipe in np.unique(seg_l // 2):
+            a = np.flatnonzero(seg_l == 2 * pipe)
+            b = np.flatnonzero(seg_l == 2 * pipe + 1)
+            if a.size and b.size:
+                sa, sb = samples.segments_uv[a[0]], samples.segments_uv[b[0]]
+                polys.append(np.array([sa[0], sa[1], sb[1], sb[0]]))
+        return polys
+
+    def _update_profiles(self, samples: LimbSamples, inner: FloatArray, good: Any) -> None:
+        """Running mean of each limb's normalised inner profile over its agreeing samples."""
+        g = np.asarray(good, dtype=bool)
+        if self.config.edge_profile_px <= 0 or inner.shape[1] != self._profiles.shape[1] or not np.any(g):
+            return
+        limbs = samples.limb[g]
+        n_l = self._profiles.shape[0]
+        cnt = np.bincount(limbs, minlength=n_l)
+        acc = np.zeros_like(self._profiles)
+        np.add.at(acc, limbs, inner[g])
+        seen = cnt >= 3
+        mean = acc[seen] / cnt[seen, None]
+        norm = np.linalg.norm(mean, axis=1, keepdims=True)
+        mean = mean / np.maximum(norm, 1e-9)  # unit norm: the reference; a weak norm = inconsistent shapes
+        fresh = seen & ~np.any(self._profiles != 0.0, axis=1)
+        rate = np.where(fresh[seen], 1.0, self.config.edge_profile_rate)[:, None]
+        upd = (1.0 - rate) * self._profiles[seen] + rate * mean * np.minimum(norm, 1.0)
+        self._profiles[seen] = upd
+
+    def _align_to_references(
+        self, img: np.ndarray[Any, np.dtype[np.float32]], T: FloatArray, pipes: PipeArrays, p_rack: FloatArray,
+        uv: FloatArray, ok: Any,
+    ) -> tuple[FloatArray, Any]:
+        """Refine the Lucas-Kanade pixels `uv` (K, 2) of the points at `p_rack` (K, 3) on their
+        warped references (pose T).
+
+        Points whose reference no longer covers the warped window keep their Lucas-Kanade
+        pixel and are marked for re-referencing (`_stale_ref`) once the frame's pose is known.
+        """
+        cfg = self.config
+        tm = self._texture
+        ok = np.asarray(ok, dtype=bool).copy()
+        self._stale_ref = np.zeros(len(tm), dtype=bool)
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return uv, ok
+        A = tangent_plane_warps(T, self.camera, uv[idx], p_rack[idx], tm.normals_rack(pipes)[idx],
+                                tm.ref_R[idx], tm.ref_o[idx])
+        res = align_templates(img, uv[idx], A, tm.ref_patch[idx], cfg.template_half_px, cfg.template_iterations)
+        near = np.all(np.isfinite(res.uv), axis=1) & (np.linalg.norm(res.uv - uv[idx], axis=1) <= 3.0)
+        good = res.inside & near & (res.ncc >= cfg.template_min_ncc)
+        uv = uv.copy()
+        uv[idx[good]] = res.uv[good]
+        # Inside the reference but no match near the Lucas-Kanade pixel: not the same point.
+        ok[idx[res.inside & ~good]] = False
+        self._stale_ref[idx[~res.inside]] = True
+        return uv, ok
+
+    def _update_texture(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], img_f: np.ndarray[Any, np.dtype[np.float32]],
+        T: FloatArray, pipes: PipeArrays, tex_uv: FloatArray, samples: LimbSamples,
+    ) -> None:
+        cfg = self.config
+        if cfg.max_texture_points == 0:
+            return
+        tm = self._texture
+        half_ref = (self._ref_patch_size() - 1) // 2
+        if len(tm):
+            if cfg.texture_templates and self._stale_ref.size == len(tm) and np.any(self._stale_ref):
+                # The view changed too much for the stored patch: this image becomes the reference.
+                st = np.flatnonzero(self._stale_ref)
+                tm.ref_patch[st] = sample_patches(img_f, tex_uv[st], half_ref)
+                tm.ref_R[st] = T[:3, :3]
+                tm.ref_o[st] = T[:3, 3]
+            p_cam = (tm.points_rack(pipes) - T[:3, 3]) @ T[:3, :3]
+            uv = self.camera.project(p_cam)
+            res = np.linalg.norm(tex_uv - uv, axis=1)
+            keep = res <= cfg.texture_max_residual_px
+            tm.uv_last = tex_uv
+            tm.keep(keep)
+            if cfg.texture_refine_obs > 1:
+                tm.refine(T, self.camera, pipes, tm.uv_last, float(cfg.texture_refine_obs))
+        self._since_detect += 1
+        need = cfg.max_texture_points - len(tm)
+        if need <= 0 or (len(tm) and need < max(3, cfg.max_texture_points // 5)):
+            return
+        # Wait detect_every frames between detections when the map is well filled, or when the last
+        # detection found fewer points than asked (sparse spots: detecting every frame finds nothing new).
+        if self._since_detect < cfg.detect_every and (len(tm) >= 0.6 * cfg.max_texture_points or self._detect_short):
+            return
+        self._since_detect = 0
+        polys = self._pipe_polygons(samples)
+        new_pipe, new_off, new_uv = detect_points(
+            gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
+            cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
+        )
+        self._detect_short = new_pipe.size < need
+        if new_pipe.size:
+            tm.add(new_pipe, new_off, new_uv, sample_patches(img_f, new_uv, half_ref), T)

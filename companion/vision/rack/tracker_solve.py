@@ -1,0 +1,235 @@
+"""The rack tracker's per-frame solve: render limbs, search edges, IRLS on SE(3) (and gaps, bias, z_g)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.geometry import se3
+from companion.vision.rack.edges import refine_silhouette, search_edges
+from companion.vision.rack.ground import (
+    ground_rows,
+    plane_points,
+)
+from companion.vision.rack.limbs import LimbSamples, sample_limbs
+from companion.vision.rack.model import PipeArrays
+from companion.vision.rack.motion import (
+    gap_jacobian,
+    gravity_rows,
+    median_1d,
+    pose_jacobian,
+    robust_weights,
+    solve_normal_equations,
+)
+from companion.vision.rack.tracker_state import TrackerState
+
+
+class TrackerSolve(TrackerState):
+    """Iterated solve of one frame (eq. 8-18, 23-29 of the paper) and its rows."""
+
+    def _solver_weights(self, first: bool, n_par: int, i_bias: int) -> tuple[FloatArray, FloatArray]:
+        """Per-iteration damping and anchor information (n_par,) (depend only on the config and `first`)."""
+        key = (first, n_par, self._start_std)
+        cached = self._weights_cache.get(key)
+        if cached is not None:
+            return cached
+        cfg = self.config
+        prior = np.ones(n_par)
+        prior[:3] = 1.0 / cfg.prior_translation_m**2
+        prior[3:6] = 1.0 / cfg.prior_rotation_rad**2
+        prior[6:i_bias] = 1.0 / cfg.prior_gap_m**2
+        anchor_info = np.zeros(n_par)
+        if first:
+            anchor_info[:3] = 1.0 / self._start_std[0] ** 2
+            anchor_info[3:6] = 1.0 / self._start_std[1] ** 2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / 0.3**2
+        else:
+            anchor_info[:3] = 1.0 / cfg.motion_prior_translation_m**2
+            anchor_info[3:6] = 1.0 / cfg.motion_prior_rotation_rad**2
+            anchor_info[i_bias : i_bias + 2] = 1.0 / cfg.edge_bias_rate_px**2
+        prior.flags.writeable = False
+        anchor_info.flags.writeable = False
+        self._weights_cache[key] = (prior, anchor_info)
+        return prior, anchor_info
+
+    def _solve(
+        self,
+        T: FloatArray,
+        gaps: FloatArray,
+        img_raw: np.ndarray[Any, np.dtype[np.float32]],
+        img_f: np.ndarray[Any, np.dtype[np.float32]],
+        tex_uv: FloatArray,
+        first: bool,
+        polarity: FloatArray,
+        ground: tuple[FloatArray, FloatArray, FloatArray] | None,
+    ) -> dict[str, Any]:
+        """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state.
+
+        `ground`: (ray origin (3,), ray directions (K, 3), current pixels (K, 2)) of the ground
+        points (rack frame), or None; with them the ground height z_g is the last parameter.
+        """
+        cfg = self.config
+        cam = self.camera
+        n_iter = cfg.init_iterations if first else cfg.max_iterations
+        n_gap = self._n_gaps if cfg.estimate_gaps else 0
+        i_bias = 6 + n_gap  # index of the two edge-bias parameters (if estimated)
+        n_par = i_bias + (2 if cfg.estimate_edge_bias else 0)
+        has_ground = ground is not None and ground[1].shape[0] > 0 and self._z_g is not None
+        i_z = n_par
+        n_par += 1 if has_ground else 0
+        prior, anchor_info = self._solver_weights(first, n_par, i_bias)
+        if has_ground:
+            prior, anchor_info = prior.copy(), anchor_info.copy()
+            prior[i_z] = 1.0
+            # In the solver's information scale (the posterior is inv(H) * scale2 * inflation, see the
+            # covariance): with 1 / var here a frame that does not observe z_g multiplied its variance
+            # by scale2 * inflation (~2-4 on textured grounds), and z_g wandered off by metres.
+            anchor_info[i_z] = self._scale2 * cfg.covariance_inflation / self._z_g_var
+        pipes = self._pipe_arrays(gaps)
+        # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
+        tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
+        bias = self._edge_bias.copy()
+        moved = np.zeros(n_par)  # sum of this frame's increments (first order: the offset from the anchor)
+        last: dict[str, Any] = {}
+        it_done = 0
+        init_px = float(cfg.init_search_range_px)
+        if first:
+            # The first search covers init_search_range_m at the pipes' depth (capped in pixels), or
+            # three standard deviations of the reset pose if wider, or init_search_range_gaps_m when
+            # the gaps are estimated (a wrong gap moves a pipe further than the pose is off).
+            s0 = sample_limbs(T, cam, pipes, 4, cfg.margin_px, 12.0, 0.1, 0.0)
+            if s0.p_cam.shape[0]:
+                depth = median_1d(s0.p_cam[:, 2])
+                range_m = max(cfg.init_search_range_m,
+                              3.0 * (self._start_std[0] + self._start_std[1] * depth),
+                              cfg.init_search_range_gaps_m if cfg.estimate_gaps and not self._gaps_scanned else 0.0)
+                init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
+        for it in range(n_iter):
+            it_done = it + 1
+            if first:
+                rng_px = max(cfg.search_range_px, round(init_px * cfg.init_shrink**it))
+            else:
+                rng_px = cfg.search_range_px
+            samples = sample_limbs(T, cam, pipes, cfg.samples_per_limb, cfg.margin_px, 12.0, 0.1,
+                                   cfg.occlusion_margin_px)
+            pol = polarity[samples.limb]
+            img_it = img_f
+            thr = cfg.edge_threshold
+            if first and rng_px > 2 * cfg.search_range_px:
+                sigma = max(cfg.blur_sigma_px, rng_px / 16.0)
+                img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
+                thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
+            meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
+                                tangent_offset_px=cfg.edge_tangent_px,
+                                inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
+            offset_px = meas.offset_px
+            if cfg.edge_silhouette_px > 0 and not (first and rng_px > 2 * cfg.search_range_px):
+                offset_px = refine_silhouette(img_raw, samples.uv, samples.normal_px, offset_px,
+                                              cfg.edge_silhouette_px, cfg.edge_silhouette_px - 1,
+                                              max_rel_rms=cfg.edge_silhouette_max_rms)
+            A_e, r_e, f = self._edge_rows(samples, offset_px, meas.found, T, gaps, n_par)
+            if cfg.estimate_edge_bias:
+                side = samples.limb[f] % 2
+                A_e[np.arange(side.size), i_bias + side] = 1.0
+                r_e = r_e - bias[side]
+            A_t, r_t = self._texture_rows(T, pipes, tex_rack, tex_uv, n_par)
+            A = np.vstack([A_e, A_t])
+            r = np.concatenate([r_e, r_t])
+            gate = None
+            if it > 0:
+                gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
+            n_et = r.size
+            if has_ground:
+                assert ground is not None and self._z_g is not None
+                X, dXdz = plane_points(ground[0], ground[1], self._z_g + moved[i_z])
+                A_g7, r_g = ground_rows(T, cam, X, dXdz, ground[2])
+                A_g = np.zeros((r_g.size, n_par))
+                A_g[:, :6] = A_g7[:, :6]
+                if cfg.ground_along_only:
+                    e_y = np.zeros(6)
+                    e_y[:3] = T[:3, :3][1, :]  # the rack's +y in the camera frame (translation part)
+                    A_g[:, :6] = np.outer(A_g[:, :6] @ e_y, e_y)
+                A_g[:, i_z] = A_g7[:, 6]
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
+            w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
+            w[r_e.size : n_et] *= cfg.texture_weight
+            w[n_et:] *= cfg.ground_weight
+            if self._gravity is not None:
+                # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
+                # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
+                r_g, A_g6 = gravity_rows(T[:3, :3], self._gravity[0])
+                A_g = np.zeros((3, n_par))
+                A_g[:, :6] = A_g6
+                A = np.vstack([A, A_g])
+                r = np.concatenate([r, r_g])
+                w = np.concatenate([w, np.full(3, self._gravity[1])])
+            x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
+            moved += x
+            T = T @ se3.exp_one(x[:6])
+            if n_gap:
+                gaps = gaps + x[6:i_bias]
+                pipes = self._pipe_arrays(gaps)
+                if tex_uv.shape[0]:
+                    tex_rack = self._texture.points_rack(pipes)
+            if cfg.estimate_edge_bias:
+                bias = bias + x[i_bias : i_bias + 2]
+            last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
+                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size, "n_et": n_et,
+                    "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
+                    "ground_uv": ground[2] if has_ground and ground is not None else None}
+            small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
+                         and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
+            # Also stop when the update moves the rendered edges by less than stop_px (median).
+            small = small or bool(r_e.size > 0 and median_1d(np.abs(A_e @ x)) < cfg.stop_px)
+            small = small and it + 1 >= cfg.min_iterations
+            if small and (not first or rng_px <= cfg.search_range_px):
+                break
+        r_post = last["r"] - last["A"] @ last["x"]
+        n_edge = int(last["n_edge"])
+        agree = np.zeros(last["samples"].uv.shape[0], dtype=bool)
+        agree[np.flatnonzero(last["found"])] = np.abs(r_post[:n_edge]) <= cfg.inlier_px
+        last.update(
+            T=T, gaps=gaps, pipes=pipes, bias=bias, iterations=it_done, r_post=r_post, agree=agree,
+            n_agree=int(agree.sum()),
+            residual_px=1.4826 * median_1d(np.abs(r_post[:n_edge])) if n_edge else float("inf"),
+        )
+        return last
+
+    def _edge_rows(
+        self, samples: LimbSamples, offset: FloatArray, found: Any, T: FloatArray, gaps: FloatArray, n_par: int
+    ) -> tuple[FloatArray, FloatArray, Any]:
+        f = np.asarray(found, dtype=bool)
+        J6 = pose_jacobian(samples.J_uv_pcam[f], samples.p_cam[f])  # (n, 2, 6)
+        nrm = samples.normal_px[f]
+        A = np.zeros((int(f.sum()), n_par))
+        A[:, :6] = np.einsum("nij,ni->nj", J6, nrm)  # σ = ξᵀ n (eq. 15)
+        if self.config.estimate_gaps and self._n_gaps:
+            gi = self._pipe_arrays(gaps).gap_index[samples.pipe[f]]
+            has = gi >= 0
+            Jg = gap_jacobian(samples.J_uv_pcam[f][has], T[:3, :3].T)
+            A[np.flatnonzero(has), 6 + gi[has]] = np.einsum("ni,ni->n", Jg, nrm[has])
+        return A, offset[f], f
+
+    def _texture_rows(
+        self, T: FloatArray, pipes: PipeArrays, p_rack: FloatArray, tex_uv: FloatArray, n_par: int
+    ) -> tuple[FloatArray, FloatArray]:
+        k = tex_uv.shape[0]
+        if k == 0:
+            return np.zeros((0, n_par)), np.zeros(0)
+        p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
+        uv, J = self.camera.project_with_jacobian(p_cam)
+        A = np.zeros((2 * k, n_par))
+        A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
+        if self.config.estimate_gaps and self._n_gaps:
+            gi = pipes.gap_index[self._texture.pipe]
+            Jg = gap_jacobian(J, T[:3, :3].T)  # (k, 2)
+            for c in range(2):
+                rows = 2 * np.arange(k) + c
+                has = gi >= 0
+                A[rows[has], 6 + gi[has]] = Jg[has, c]
+        r = (tex_uv - uv).reshape(-1)
+        return A, r

@@ -1,0 +1,116 @@
+"""The rack tracker's state and its small helpers (base of the solver and the maps mixins)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.errors import InputError
+from companion.vision.rack.model import PipeArrays, RackModel
+from companion.vision.rack.texture import TextureMap
+from companion.vision.rack.tracker_config import RackTrackerConfig
+
+
+class TrackerState:
+    """State of a `RackTracker` (see `__init__`), shared by the solver and map-upkeep mixins."""
+
+    def __init__(self, model: RackModel, camera: PinholeCamera, config: RackTrackerConfig | None = None) -> None:
+        if not isinstance(model, RackModel):
+            raise InputError(f"model: expected RackModel, got {type(model).__name__}")
+        if not isinstance(camera, PinholeCamera):
+            raise InputError(f"camera: expected PinholeCamera, got {type(camera).__name__}")
+        self.model = model
+        self.camera = camera
+        self.config = config or RackTrackerConfig()
+        n_limbs = 2 * model.num_pipes
+        self._n_gaps = model.num_parallel - 1
+        self._T: FloatArray | None = None
+        self._gaps = model.cumulative_gaps.copy()
+        self._edge_bias = np.zeros(2)
+        self._polarity = np.zeros(n_limbs)
+        self._polarity_known = np.zeros(n_limbs, dtype=bool)
+        # Learned inner edge profile of each limb (zero rows: none yet); see `search_edges`.
+        self._profiles = np.zeros((n_limbs, self.config.edge_profile_px))
+        self._texture = TextureMap.empty(self._ref_patch_size())
+        self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
+        self._velocity = np.zeros(6)
+        self._last_stamp: float | None = None
+        self._frames = 0
+        self._initialized = False
+        # Standard deviations (m, rad) of the pose the wide first-frame search starts from: the reset
+        # pose's (`reset_prior_*` or the caller's), or the re-lock prior's after rejected frames.
+        self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
+        self._lost_frames = 0
+        self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
+        self._since_detect = 0
+        self._detect_short = False
+        self._pipes_key: bytes | None = None
+        self._pipes_cached: PipeArrays | None = None
+        self._weights_cache: dict[tuple[bool, int, tuple[float, float]], tuple[FloatArray, FloatArray]] = {}
+        self._stale_ref = np.zeros(0, dtype=bool)
+        # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
+        # converts an attitude prior's standard deviation into the solver's information scale.
+        self._scale2 = 0.5
+        self._gravity: tuple[FloatArray, float] | None = None
+        # Filtered gravity ("up") of the attitude priors, carried in the rack frame through the
+        # estimated attitude (see `_fuse_gravity`), and its variance (rad^2).
+        self._up_rack: FloatArray | None = None
+        self._up_var = 0.0
+        self._reset_ground()
+
+    def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
+        """`model.pipe_arrays(gaps)`, cached for the last gaps (read-only arrays, shared)."""
+        key = np.asarray(gaps, dtype=np.float64).tobytes()
+        if key != self._pipes_key or self._pipes_cached is None:
+            pipes = self.model.pipe_arrays(gaps)
+            for a in (pipes.starts, pipes.directions, pipes.radii, pipes.lengths, pipes.gap_index):
+                a.flags.writeable = False
+            self._pipes_key, self._pipes_cached = key, pipes
+        return self._pipes_cached
+
+    def _as_gray(self, image: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
+        img = np.asarray(image)
+        if img.dtype != np.uint8:
+            raise InputError(f"image: expected uint8, got {img.dtype}")
+        if img.ndim == 3 and img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.ndim == 3 and img.shape[2] == 1:
+            img = img[:, :, 0]
+        if img.ndim != 2:
+            raise InputError(f"image: expected (H, W) or (H, W, 3), got {img.shape}")
+        if img.shape != (self.camera.height, self.camera.width):
+            raise InputError(f"image: size {img.shape[1]}x{img.shape[0]} does not match the camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        return np.ascontiguousarray(img)
+
+    def _check_prior(self, R_prior: Any, std_rad: float | None) -> tuple[FloatArray, float] | None:
+        """The attitude prior as (R (3, 3), std (rad)), or None; raises InputError naming the bad argument."""
+        if R_prior is None and std_rad is None:
+            return None
+        if R_prior is None or std_rad is None:
+            raise InputError("R_prior: give both R_prior and R_prior_std_rad, or neither")
+        R = np.asarray(R_prior, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
+                or np.linalg.det(R) < 0:
+            raise InputError(f"R_prior: expected a 3x3 rotation matrix, got shape {R.shape}")
+        std = float(std_rad)
+        if not np.isfinite(std) or std <= 0.0:
+            raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
+        return R, std
+
+    def _reset_ground(self) -> None:
+        self._silhouettes_pred: list[FloatArray] | None = None  # pipes' silhouettes at this frame's prediction
+        self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
+        self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
+        self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
+        self._z_g: float | None = None
+        self._z_g_var = 0.0
+
+    def _ref_patch_size(self) -> int:
+        """Side of the stored reference patches: room for the window scaled by up to ~1.6."""
+        half = int(np.ceil(1.6 * (self.config.template_half_px + 1))) + 1
+        return 2 * half + 1
