@@ -31,6 +31,7 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "relock_after_frames": 0,
     "unobserved_velocity_tau_s": 0.0,
     "gap_scan": False,
+    "texture_weight": 2.0,  # flown on ArduCopter; 20 put a waypoint 17 cm off (docs/rack.md)
 }
 
 

@@ -129,7 +129,7 @@ class RackTrackerConfig:
     velocity_prediction: bool = True
     unobserved_velocity_tau_s: float = 0.3
     max_texture_points: int = 50
-    texture_weight: float = 2.0
+    texture_weight: float = 4.0
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
