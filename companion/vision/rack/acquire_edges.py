@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from companion.checks import FloatArray
-from companion.vision.rack.edges import EdgeMeasurements, _search_constants
+from companion.vision.rack.edges import EdgeMeasurements, _search_constants, pick_in_gradients
 
 Float32Array = np.ndarray[Any, np.dtype[np.float32]]
 
@@ -49,38 +49,16 @@ def normal_profiles(image_f32: Float32Array, uv: FloatArray, normal: FloatArray,
 
 def pick_edges(prof: Float32Array, polarity: FloatArray, range_px: int, threshold: float) -> EdgeMeasurements:
     """The edge of each sample in its profile (`normal_profiles`) for `polarity` (N,) (+1/-1 the sign of
-    the gradient along the normal, 0 either): `search_edges` without its options."""
+    the gradient along the normal, 0 either): `search_edges`' choice (`edges.pick_in_gradients`)."""
     n = prof.shape[0]
     R = int(range_px)
     if n == 0:
         z = np.zeros(0)
         return EdgeMeasurements(offset_px=z, found=np.zeros(0, dtype=bool), sign=z, strength=z)
     _, prior = _search_constants(R, None)
-    pol = np.asarray(polarity, dtype=np.float32)[:, None]
     g = prof[:, 2:] - prof[:, :-2]  # (N, 2R+1) at k = -R..R
-    has_pol = pol != 0.0
-    if has_pol.all():
-        signed = g * pol
-    elif not has_pol.any():
-        signed = np.abs(g)
-    else:
-        signed = np.where(has_pol, g * pol, np.abs(g))
-    score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
-    best = np.argmax(score, axis=1)
-    width = 2 * R + 1
-    row0 = np.arange(n) * width
-    found = (score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R)
-    b = np.minimum(np.maximum(best, 1), 2 * R - 1)
-    i_b = row0 + b
-    flat = signed.ravel()
-    s_m, s_0, s_p = flat[i_b - 1], flat[i_b], flat[i_b + 1]
-    den = s_m - 2.0 * s_0 + s_p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        frac = np.where(den < -1e-6, 0.5 * (s_m - s_p) / den, 0.0)
-    frac = np.minimum(np.maximum(frac, -0.5), 0.5)
-    offset = (b - R).astype(np.float64) + frac
-    g_b = g.ravel()[i_b]
-    return EdgeMeasurements(offset_px=offset, found=np.asarray(found), sign=np.sign(g_b).astype(np.float64),
+    offset, found, _, g_b = pick_in_gradients(g, polarity, prior, R, threshold)
+    return EdgeMeasurements(offset_px=offset, found=found, sign=np.sign(g_b).astype(np.float64),
                             strength=np.abs(g_b).astype(np.float64), inner=np.zeros((n, 0)))
 
 

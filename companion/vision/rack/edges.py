@@ -108,7 +108,6 @@ def search_edges(
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if n_taps > 1:
         prof = prof.reshape(n, n_taps, -1).mean(axis=1)
-    pol = np.asarray(polarity, dtype=np.float32)[:, None]
     windows = None
     if M:
         # Candidate k = -R + c: its inner window k-M..k-1 is prof[c+1 : c+1+M] (prof starts at -R-1-M).
@@ -120,6 +119,42 @@ def search_edges(
         g = prof[:, 2:] - prof[:, 1:-1]  # (N, 2R+1) at k + 1/2, k = -R..R
     else:
         g = prof[:, 2:] - prof[:, :-2]  # (N, 2R+1) at k = -R..R
+    factor = None
+    if windows is not None and inner_ref is not None:
+        ref = np.asarray(inner_ref, dtype=np.float32)
+        has_ref = (ref * ref).sum(axis=1) > 0.25
+        ncc = np.einsum("ncm,nm->nc", windows, ref)
+        factor = np.where(has_ref[:, None], np.square(np.clip(0.5 + 0.5 * ncc, 0.0, 1.0)), np.float32(1.0))
+    offset, found, b, g_b = pick_in_gradients(g, polarity, prior, R, threshold, factor)
+    if forward_difference:
+        offset = offset + 0.5
+    inner = np.zeros((n, 0)) if windows is None else windows[np.arange(n), b].astype(np.float64)
+    return EdgeMeasurements(
+        offset_px=offset,
+        found=found,
+        sign=np.sign(g_b).astype(np.float64),
+        strength=np.abs(g_b).astype(np.float64),
+        inner=inner,
+    )
+
+
+def pick_in_gradients(
+    g: np.ndarray[Any, np.dtype[np.float32]],
+    polarity: FloatArray,
+    prior: Float32Array,
+    R: int,
+    threshold: float,
+    factor: Any = None,
+) -> tuple[FloatArray, BoolArray, np.ndarray[Any, np.dtype[np.intp]], Float32Array]:
+    """The edge of each sample in its gradient profile `g` (N, 2R+1) (offsets k = -R..R along the normal).
+
+    `polarity` (N,) +1/-1 accepts only gradients of that sign, 0 either; candidates below `threshold` are
+    ignored; the score is the signed gradient times the distance `prior` (2R+1,) (and `factor` (N, 2R+1)
+    when given); the best one is refined by a parabola. Returns the offset (px, before any half-pixel
+    shift of a forward difference), found, the chosen index b (1..2R-1) and the gradient there.
+    """
+    n = g.shape[0]
+    pol = np.asarray(polarity, dtype=np.float32)[:, None]
     has_pol = pol != 0.0
     if has_pol.all():
         signed = g * pol
@@ -128,16 +163,12 @@ def search_edges(
     else:
         signed = np.where(has_pol, g * pol, np.abs(g))
     score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
-    if windows is not None and inner_ref is not None:
-        ref = np.asarray(inner_ref, dtype=np.float32)
-        has_ref = (ref * ref).sum(axis=1) > 0.25
-        ncc = np.einsum("ncm,nm->nc", windows, ref)
-        factor = np.square(np.clip(0.5 + 0.5 * ncc, 0.0, 1.0))
-        score = np.where(has_ref[:, None], score * factor, score)
+    if factor is not None:
+        score = score * factor
     best = np.argmax(score, axis=1)
     width = 2 * R + 1
     row0 = np.arange(n) * width  # flat index of each row's k = -R
-    found = (score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R)
+    found = np.asarray((score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R))
     b = np.minimum(np.maximum(best, 1), 2 * R - 1) if R >= 1 else best
     i_b = row0 + b
     flat = signed.ravel()
@@ -146,16 +177,8 @@ def search_edges(
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(den < -1e-6, 0.5 * (s_m - s_p) / den, 0.0)
     frac = np.minimum(np.maximum(frac, -0.5), 0.5)
-    offset = (b - R).astype(np.float64) + frac + (0.5 if forward_difference else 0.0)
-    g_b = g.ravel()[i_b]
-    inner = np.zeros((n, 0)) if windows is None else windows[np.arange(n), b].astype(np.float64)
-    return EdgeMeasurements(
-        offset_px=offset,
-        found=np.asarray(found),
-        sign=np.sign(g_b).astype(np.float64),
-        strength=np.abs(g_b).astype(np.float64),
-        inner=inner,
-    )
+    offset = (b - R).astype(np.float64) + frac
+    return offset, found, b, g.ravel()[i_b]
 
 
 # Candidate silhouette positions tried by `refine_silhouette`, relative to the rounded gradient peak (px).
