@@ -101,3 +101,21 @@ def test_silhouette_of_a_shaded_limb_where_the_gradient_peak_is_inside() -> None
     img = _limb_image(100.3, 40.0, 95.0, 175.0, 110.0)
     m = search_edges(img, np.array([[100.0, 20.0]]), np.array([[1.0, 0.0]]), np.array([-1.0]), 8, 2.0)
     assert 100.0 + m.offset_px[0] < 100.3 - 1.0
+
+
+def test_inner_windows_equal_the_direct_normalisation_bit_for_bit() -> None:
+    # The window-major form (speed, issue #14) must give exactly what the per-window reductions give.
+    from companion.vision.rack.edges import _inner_windows
+
+    rng = np.random.default_rng(14)
+    for M, R in ((3, 5), (8, 12), (13, 7), (8, 1)):
+        n_cand = 2 * R + 1
+        # Blurred-image profiles (not exact in float32) and a flat one (norm floor).
+        prof = (255.0 * rng.random((40, n_cand + M + 2))).astype(np.float32)
+        prof[0] = 17.25
+        w = np.lib.stride_tricks.sliding_window_view(prof[:, 1:], M, axis=1)[:, :n_cand, :]
+        w = w - w.mean(axis=2, keepdims=True)
+        direct = w / np.maximum(np.sqrt((w * w).sum(axis=2, keepdims=True)), 1e-3)
+        fast = _inner_windows(prof, M, n_cand)
+        assert fast.flags.c_contiguous and fast.dtype == np.float32
+        np.testing.assert_array_equal(fast, direct)
