@@ -76,19 +76,18 @@ def pipe_silhouettes(T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeA
     D = lines.direction @ R
     s0, s1 = clip_lines_to_view(A, D, lines.s_min, lines.s_max, camera,
                                 -float(max(camera.width, camera.height)), 0.1)
-    polys = []
-    for m in range(pipes.radii.size):
-        i, j = 2 * m, 2 * m + 1
-        if not (lines.valid[i] and s0[i] < s1[i] and s0[j] < s1[j]):
-            continue
-        ends = np.stack([A[i] + s0[i] * D[i], A[i] + s1[i] * D[i], A[j] + s1[j] * D[j], A[j] + s0[j] * D[j]])
-        # Pinhole part only: a distortion polynomial is meaningless far outside the image.
-        xn = ends[:, :2] / ends[:, 2:3]
-        uv = np.stack([camera.fx * xn[:, 0] + camera.skew * xn[:, 1] + camera.cx, camera.fy * xn[:, 1] + camera.cy],
-                      axis=1)
-        if np.all(np.isfinite(uv)):
-            polys.append(uv)
-    return polys
+    # All pipes at once (the same arithmetic per corner as one pipe at a time), then the usable ones.
+    P0 = A + s0[:, None] * D
+    P1 = A + s1[:, None] * D
+    ends = np.stack([P0[0::2], P1[0::2], P1[1::2], P0[1::2]], axis=1)  # (M, 4, 3)
+    use = lines.valid[0::2] & (s0[0::2] < s1[0::2]) & (s0[1::2] < s1[1::2])
+    # Pinhole part only: a distortion polynomial is meaningless far outside the image.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = ends[:, :, :2] / ends[:, :, 2:3]
+        uv = np.stack([camera.fx * xn[:, :, 0] + camera.skew * xn[:, :, 1] + camera.cx,
+                       camera.fy * xn[:, :, 1] + camera.cy], axis=2)
+    use &= np.all(np.isfinite(uv), axis=(1, 2))
+    return [uv[m] for m in np.flatnonzero(use)]
 
 
 def ground_mask(shape: tuple[int, int], pipe_polygons: list[FloatArray], margin_px: float) -> np.ndarray[Any, Any]:
@@ -123,16 +122,18 @@ def detect_ground_points(
     min_distance_px: float,
     margin_px: float,
     min_corner_ratio: float,
+    mask: np.ndarray[Any, Any] | None = None,
 ) -> FloatArray:
     """Corners (J, 2) outside the pipes' image regions (grown by `margin_px`) and the image border.
 
     A corner's minimum structure-tensor eigenvalue must reach `min_corner_ratio` times the median
-    over the searched region (its noise floor).
+    over the searched region (its noise floor). `mask`: `ground_mask(gray.shape, pipe_polygons,
+    margin_px)` when the caller has it already (not modified).
     """
     h, w = gray.shape[:2]
     if max_new <= 0:
         return np.zeros((0, 2))
-    mask = ground_mask((h, w), pipe_polygons, margin_px)
+    mask = ground_mask((h, w), pipe_polygons, margin_px) if mask is None else mask.copy()
     for q in existing_uv:
         cv2.circle(mask, (round(q[0]), round(q[1])), int(min_distance_px), 0, -1)
     if not np.any(mask):

@@ -124,6 +124,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
         # ---- texture points: LK from the previous image, seeded by the predicted projection
         tex_uv = np.zeros((0, 2))
         tex_ok = np.zeros(0, dtype=bool)
+        ground_in = self._ground_lk_inputs(gray, T)
+        ground_out: tuple[FloatArray, Any] | None = None
         if len(self._texture) and self._prev_gray is not None and cfg.max_texture_points > 0:
             p_rack = self._texture.points_rack(pipes)
             p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
@@ -131,8 +133,17 @@ class RackTracker(TrackerSolve, TrackerMaps):
             vis = np.all(np.isfinite(guess), axis=1) & cam.in_image(guess, 8.0)
             vis &= ~occluded(T[:3, 3], p_rack, self._texture.pipe, pipes, 0.0)
             guess = np.where(vis[:, None], guess, self._texture.uv_last)
-            tex_uv, tex_ok = track_points(self._prev_gray, gray, self._texture.uv_last, guess,
-                                          cfg.lk_window_px, cfg.lk_levels)
+            if ground_in is not None and ground_in[3] is gray:
+                # One Lucas-Kanade call for the texture and the ground points (the same two images; the
+                # image pyramids and gradients are built once instead of twice).
+                k = len(self._texture)
+                uv_all, ok_all = track_points(self._prev_gray, gray, np.vstack([self._texture.uv_last, ground_in[0]]),
+                                              np.vstack([guess, ground_in[1]]), cfg.lk_window_px, cfg.lk_levels)
+                tex_uv, tex_ok = uv_all[:k], ok_all[:k]
+                ground_out = (uv_all[k:], ok_all[k:])
+            else:
+                tex_uv, tex_ok = track_points(self._prev_gray, gray, self._texture.uv_last, guess,
+                                              cfg.lk_window_px, cfg.lk_levels)
             tex_ok &= vis & cam.in_image(tex_uv, 4.0)
             if cfg.texture_templates:
                 tex_uv, tex_ok = self._align_to_references(img_raw, T, pipes, p_rack, tex_uv, tex_ok)
@@ -140,7 +151,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             if self._stale_ref.size == tex_ok.size:
                 self._stale_ref = self._stale_ref[tex_ok]
             tex_uv = tex_uv[tex_ok]
-        ground = self._track_ground(gray, T)
+        ground = self._track_ground(gray, T, ground_in, ground_out)
         # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
         if first:
             n_p = self.model.num_parallel

@@ -42,10 +42,12 @@ class TrackerMaps(TrackerState):
         self._polarity[upd] = (1.0 - rate) * self._polarity[upd] + rate * mean[upd]
         self._polarity_known |= seen
 
-    def _track_ground(
+    def _ground_lk_inputs(
         self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
-        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection."""
+    ) -> tuple[FloatArray, FloatArray, Any, np.ndarray[Any, np.dtype[np.uint8]]] | None:
+        """What Lucas-Kanade needs for last frame's ground points: (their pixels in the previous image (K, 2),
+        the predicted pixels at pose `T_pred` (K, 2), which have a finite plane point (K,), the image to track
+        into: `gray` itself unless brought to the previous image's mean level); None without ground points."""
         cfg = self.config
         if cfg.ground_points <= 0 or self._prev_gray is None or self._z_g is None or not self._ground_uv.shape[0]:
             return None
@@ -59,13 +61,32 @@ class TrackerMaps(TrackerState):
         cur = gray
         if m_cur > 1.0 and abs(m_prev / m_cur - 1.0) > 0.03:
             cur = np.asarray(cv2.convertScaleAbs(gray, alpha=m_prev / m_cur), dtype=np.uint8)
-        uv, ok = track_points(self._prev_gray, cur, self._ground_uv, guess, cfg.lk_window_px, cfg.lk_levels)
-        ok &= fin & self.camera.in_image(uv, 4.0)
+        return self._ground_uv, guess, fin, cur
+
+    def _track_ground(
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray,
+        lk_in: tuple[FloatArray, FloatArray, Any, np.ndarray[Any, np.dtype[np.uint8]]] | None,
+        lk_out: tuple[FloatArray, Any] | None = None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection.
+
+        `lk_in` from `_ground_lk_inputs`; `lk_out` (pixels (K, 2), ok (K,)) when the caller already tracked
+        them (in one call with the texture points: each point's result does not depend on the others).
+        """
+        if lk_in is None or self._prev_gray is None:
+            return None
+        cfg = self.config
+        uv_prev, guess, fin, cur = lk_in
+        if lk_out is None:
+            lk_out = track_points(self._prev_gray, cur, uv_prev, guess, cfg.lk_window_px, cfg.lk_levels)
+        uv, ok = lk_out
+        ok = ok & fin & self.camera.in_image(uv, 4.0)
         # Points a pipe moves over between the frames (parallax; a pipe entering the view) would be
         # tracked on its cladding: keep those clear of the pipes at the predicted pose.
         polygons = pipe_silhouettes(T_pred, self.camera, self._pipe_arrays(self._gaps))
-        self._silhouettes_pred = polygons
-        ok &= on_ground(uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))
+        mask = ground_mask(gray.shape[:2], polygons, cfg.margin_px)
+        self._silhouettes_pred = (polygons, mask)
+        ok &= on_ground(uv, mask)
         return self._ground_o, self._ground_d[ok], uv[ok]
 
     def _update_ground(
@@ -92,16 +113,18 @@ class TrackerMaps(TrackerState):
             ground_uv = last.get("ground_uv")
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
                 keep_uv = ground_uv[ok]
-        # the predicted pose's silhouettes (computed for tracking) are close enough for the margin
-        polygons = self._silhouettes_pred
-        if polygons is None:
+        # the predicted pose's silhouettes and ground mask (computed for tracking) are close enough for the margin
+        if self._silhouettes_pred is None:
             polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
+            mask = ground_mask(gray.shape[:2], polygons, cfg.margin_px)
+        else:
+            polygons, mask = self._silhouettes_pred
         self._silhouettes_pred = None
         if keep_uv.shape[0]:
             # A pipe sweeps over the ground next to it as the camera moves (parallax): a ground point at
             # its limb is tracked onto the pipe's cladding and pulls z_g up towards the pipes. Drop
             # points that come within the margin of a pipe.
-            keep_uv = keep_uv[on_ground(keep_uv, ground_mask(gray.shape[:2], polygons, cfg.margin_px))]
+            keep_uv = keep_uv[on_ground(keep_uv, mask)]
         if self._z_g is None:
             # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
             top = 2.0 * float(np.max(self.model.radii))
@@ -113,7 +136,7 @@ class TrackerMaps(TrackerState):
         due = self._frames % cfg.detect_every == 0 or keep_uv.shape[0] < cfg.ground_points // 2
         if need >= max(3, cfg.ground_points // 5) and due:
             new = detect_ground_points(gray, polygons, keep_uv, need,
-                                       cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio)
+                                       cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio, mask)
         uv = np.vstack([keep_uv, new])
         self._ground_uv = uv
         self._ground_o = T[:3, 3].copy()

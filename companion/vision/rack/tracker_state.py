@@ -103,7 +103,8 @@ class TrackerState:
         return R, std
 
     def _reset_ground(self) -> None:
-        self._silhouettes_pred: list[FloatArray] | None = None  # pipes' silhouettes at this frame's prediction
+        # pipes' silhouettes at this frame's prediction and the ground mask they give (`ground.ground_mask`)
+        self._silhouettes_pred: tuple[list[FloatArray], np.ndarray[Any, Any]] | None = None
         self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
         self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
         self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
