@@ -290,7 +290,10 @@ def refine_silhouette(
     my = (uv[:, 1:2] + steps * normal[:, 1:2]).astype(np.float32)
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
     proj = prof @ Q  # (N, D * 4)
-    sse = np.sum(prof * prof, axis=1)[:, None] - np.sum(np.square(proj).reshape(n, -1, 4), axis=2)
+    sq = proj * proj
+    # Each candidate's |Q_dᵀ P|²: its four columns added left to right (as a sum over a length-4 axis
+    # does, bit for bit), as three adds of (N, D) slabs (a reduction over a short axis is slow).
+    sse = np.sum(prof * prof, axis=1)[:, None] - (((sq[:, 0::4] + sq[:, 1::4]) + sq[:, 2::4]) + sq[:, 3::4])
     best = np.argmin(sse, axis=1)
     b = np.clip(best, 1, _REFINE_DELTAS.size - 2)
     rows = np.arange(n)
@@ -304,6 +307,9 @@ def refine_silhouette(
         # Keep the gradient peak where the limb model does not explain the profile (a grating or a
         # beam next to the limb): its fit there is arbitrary.
         rms = np.sqrt(np.maximum(s_0, 0.0) / max(j.size - 4, 1))
-        contrast = np.ptp(prof, axis=1)
+        hi, lo = prof[:, 0], prof[:, 0]
+        for c in range(1, prof.shape[1]):  # the range per sample column by column (a short-axis reduction is slow)
+            hi, lo = np.maximum(hi, prof[:, c]), np.minimum(lo, prof[:, c])
+        contrast = hi - lo
         out = np.where(rms <= max_rel_rms * np.maximum(contrast, 1e-6), out, offset_px)
     return np.asarray(out)
