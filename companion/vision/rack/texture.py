@@ -17,6 +17,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.corners import strong_corners
 from companion.vision.rack.limbs import IntArray, ray_cylinder_hits
 from companion.vision.rack.model import PipeArrays
 
@@ -159,27 +160,27 @@ def detect_points(
     x, y, w, h = cv2.boundingRect(mask)
     if w < 8 or h < 8:
         return empty
-    corners = cv2.goodFeaturesToTrack(
-        gray[y : y + h, x : x + w],
-        maxCorners=int(2 * max_new),
-        qualityLevel=0.02,
-        minDistance=float(min_distance_px),
-        mask=mask[y : y + h, x : x + w],
-        blockSize=7,
-    )
+    roi, roi_mask = gray[y : y + h, x : x + w], mask[y : y + h, x : x + w]
+    # With a floor: one eigenvalue pass, only the corners above the floor ordered and thinned (`corners.py`;
+    # the same corners as OpenCV's detector then the floor).
+    corners = strong_corners(roi, roi_mask, int(2 * max_new), float(min_distance_px), 0.02, 7, min_corner_ratio) \
+        if min_corner_ratio > 0 else None
     if corners is None:
-        return empty
-    uv = corners.reshape(-1, 2).astype(np.float64) + np.array([x, y], dtype=np.float64)
-    if min_corner_ratio > 0:
-        roi = gray[y : y + h, x : x + w]
-        ev = np.asarray(cv2.cornerMinEigenVal(roi, 7, ksize=3))
-        inside = mask[y : y + h, x : x + w] > 0
-        floor = float(np.median(ev[inside])) if np.any(inside) else 0.0
-        c = np.rint(corners.reshape(-1, 2)).astype(np.intp)
-        strong = ev[np.clip(c[:, 1], 0, h - 1), np.clip(c[:, 0], 0, w - 1)] >= min_corner_ratio * floor
-        uv = uv[strong]
-        if uv.shape[0] == 0:
+        found = cv2.goodFeaturesToTrack(roi, maxCorners=int(2 * max_new), qualityLevel=0.02,
+                                        minDistance=float(min_distance_px), mask=roi_mask, blockSize=7)
+        if found is None:
             return empty
+        corners = np.asarray(found, dtype=np.float32).reshape(-1, 2)
+        if min_corner_ratio > 0:
+            ev = np.asarray(cv2.cornerMinEigenVal(roi, 7, ksize=3))
+            inside = roi_mask > 0
+            floor = float(np.median(ev[inside])) if np.any(inside) else 0.0
+            c = np.rint(corners).astype(np.intp)
+            corners = corners[ev[np.clip(c[:, 1], 0, h - 1), np.clip(c[:, 0], 0, w - 1)]
+                          >= min_corner_ratio * floor]
+    uv = corners.astype(np.float64) + np.array([x, y], dtype=np.float64)
+    if uv.shape[0] == 0:
+        return empty
     rays_cam = camera.unproject(uv)
     R = T_rack_cam[:3, :3]
     o = T_rack_cam[:3, 3]

@@ -1,0 +1,109 @@
+"""Shi-Tomasi corners above a noise floor, with one structure-tensor pass (the texture detector's speed).
+
+`cv2.goodFeaturesToTrack` followed by a floor on each corner's minimum eigenvalue computes the
+eigenvalue map twice (once inside OpenCV, once for the floor) and sorts every local maximum above
+its quality level (thousands on a textured image) only for the floor to keep a few. Here the map is
+computed once and only the local maxima above both thresholds are ordered and thinned. The result
+is exactly OpenCV's, floored: OpenCV keeps local maxima (3x3) above `quality_level` times the
+mask's maximum, visits them by decreasing eigenvalue (ties: the later pixel in row-major order
+first) and accepts one unless an accepted corner lies closer than `min_distance_px`, until
+`max_corners` are accepted. Whether a corner is accepted depends only on the corners visited before
+it, all stronger, so the accepted corners above the floor are those of the same visit restricted to
+the corners above the floor. Pixels are (x, y) in the given image (OpenCV's integer pixel centres).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+Float32Array = np.ndarray[Any, np.dtype[np.float32]]
+_CHUNK = 256  # candidates whose mutual distances are tested in one (chunk, chunk) array
+
+
+def strong_corners(
+    gray: np.ndarray[Any, np.dtype[np.uint8]],
+    mask: np.ndarray[Any, np.dtype[np.uint8]],
+    max_corners: int,
+    min_distance_px: float,
+    quality_level: float,
+    block_size: int,
+    min_ratio: float,
+) -> Float32Array | None:
+    """Corners (J, 2) float32 (x, y), in `cv2.goodFeaturesToTrack`'s order, whose minimum eigenvalue is at least
+    `min_ratio` times its median over `mask` (> 0 where searched).
+
+    Equal to `cv2.goodFeaturesToTrack(gray, max_corners, quality_level, min_distance_px, mask=mask,
+    blockSize=block_size)` (gradient size 3, no Harris) filtered by `cv2.cornerMinEigenVal(gray,
+    block_size, ksize=3) >= min_ratio * median` at each corner. None (the caller then runs those two)
+    when the mask is empty or the maximum or the median eigenvalue is not positive.
+    """
+    ev = np.asarray(cv2.cornerMinEigenVal(gray, block_size, ksize=3), dtype=np.float32)
+    inside = mask > 0
+    vals = ev[inside]
+    if vals.size == 0:
+        return None
+    floor = _median(vals)
+    max_val = float(vals.max())
+    if not (max_val > 0.0 and floor > 0.0 and min_ratio > 0.0 and min_distance_px >= 1.0):
+        return None
+    # OpenCV thresholds the float32 map at (float) (max * quality), keeping values strictly above.
+    q32 = np.float32(max_val * quality_level)
+    # The floor test compares in double: e >= min_ratio * floor  <=>  e >= the least float32 not below it.
+    bound = min_ratio * floor
+    f32 = np.float32(bound)
+    if float(f32) < bound:
+        f32 = np.nextafter(f32, np.float32(np.inf))
+    h, w = ev.shape
+    cand = inside & (ev > q32) & (ev >= f32)
+    # OpenCV looks at the interior only (its 3x3 maximum needs all neighbours).
+    cand[0, :] = False
+    cand[h - 1, :] = False
+    cand[:, 0] = False
+    cand[:, w - 1] = False
+    idx = np.flatnonzero(cand)
+    flat = ev.ravel()
+    val = flat[idx]
+    # Local maximum of the thresholded map: no neighbour larger (a neighbour larger than a value above the
+    # threshold is above it too, so the raw map gives the same test).
+    peak = np.ones(idx.size, dtype=bool)
+    for off in (-w - 1, -w, -w + 1, -1, 1, w - 1, w, w + 1):
+        peak &= flat[idx + off] <= val
+    idx, val = idx[peak], val[peak]
+    order = np.lexsort((-idx, -val))  # decreasing value, ties: the later pixel first
+    idx = idx[order]
+    xs = (idx % w).astype(np.int64)
+    ys = (idx // w).astype(np.int64)
+    min_d2 = float(min_distance_px) ** 2
+    acc_x: list[int] = []
+    acc_y: list[int] = []
+    for s in range(0, idx.size, _CHUNK):
+        cx, cy = xs[s : s + _CHUNK], ys[s : s + _CHUNK]
+        free = np.ones(cx.size, dtype=bool)
+        if acc_x:
+            ax, ay = np.array(acc_x), np.array(acc_y)
+            free = ~np.any((cx[:, None] - ax[None, :]) ** 2 + (cy[:, None] - ay[None, :]) ** 2 < min_d2, axis=1)
+        near = (cx[:, None] - cx[None, :]) ** 2 + (cy[:, None] - cy[None, :]) ** 2 < min_d2
+        for i in np.flatnonzero(free):
+            if not free[i]:
+                continue
+            acc_x.append(int(cx[i]))
+            acc_y.append(int(cy[i]))
+            if len(acc_x) == max_corners:
+                return np.array([acc_x, acc_y], dtype=np.float32).T.copy()
+            free &= ~near[i]
+    return np.array([acc_x, acc_y], dtype=np.float32).reshape(2, -1).T.copy()
+
+
+def _median(vals: Float32Array) -> float:
+    """`np.median` of a non-empty 1-D array without NaN (the same value): one selection, then the largest
+    value below it for an even count (`np.median` selects three ranks, about five times slower here)."""
+    n = vals.size
+    h = n // 2
+    p = np.partition(vals, h)
+    if n % 2:
+        return float(p[h])
+    return float((p[:h].max() + p[h]) / 2.0)
+
