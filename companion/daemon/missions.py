@@ -39,6 +39,7 @@ class Missions(DaemonState):
             raise MissionError(f"mission '{mission_id}' refused: {reason}")
         self.mission_refused = None
         self.executor = MissionExecutor(mission, T_ned_rack=self.T_ned_rack)
+        self._along_pipe_search = None  # a new mission gets a new rack-end search (along_pipe_task)
         self.mission_id = mission_id
         self._servo.reset() if self._servo is not None else None
         self.executor.start(self.clock.now())
