@@ -2,7 +2,7 @@
 pipes) and 0.35 m east of the configured start, the daemon acquires the rack on the deck but keeps the start's
 along-pipe position; before the first waypoint that needs it, it flies slowly toward the rack's end until
 the end is in view (y corrected), then flies the waypoint; or, with a leg too short to reach the end, it
-holds, pauses the mission and tells the GCS. Asserted on what the fake autopilot received and its true pose
+holds, pauses the mission and tells the GCS (the operator's resume then flies on without it). Asserted on what the fake autopilot received and its true pose
 (manual clock, 360x240 frames, as test_daemon_acquisition)."""
 
 from __future__ import annotations
@@ -123,3 +123,9 @@ async def test_the_search_holds_and_pauses_when_the_end_is_not_in_view(tmp_path:
         assert all(a.action_id != "p3" for a in ex.results)  # the waypoint was never flown
         assert abs(_north_error_m(r)) > 0.8  # nothing observed y: it was right not to fly on
         assert [rec["state"] for rec in _logged(r, "along-pipe-search")] == ["searching", "failed"]
+        # the operator's resume: fly on with the start's along-pipe position (the waypoint is off by its error)
+        t_resume = r.clock.now()
+        r.daemon.resume_mission()
+        await r.advance_until(lambda: ex.state is State.COMPLETED, max_s=60.0)
+        assert any("operator resumed: flying on" in t for t in _texts(r, t_resume))
+        assert [rec["state"] for rec in _logged(r, "along-pipe-search")] == ["searching", "failed", "overridden"]

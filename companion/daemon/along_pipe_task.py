@@ -9,7 +9,8 @@ manager allows the mission (the goal goes through the same servo law and `Safety
 mission goal). The end seen (`rack_end_fix`, vision task): the action goes on with the corrected
 estimate. Not seen within the leg, tracker lost, or timed out: the mission is paused (the vehicle holds
 in the autopilot's hold mode), the GCS told why; the operator's resume flies on with the start's
-along-pipe position (a warning says so), abort ends the mission. Every step is in the flight log
+along-pipe position (a warning says so), abort ends the mission; a safety hold's automatic resume does
+not (the mission is paused again). Every step is in the flight log
 (`along-pipe-search`), on the GCS (STATUSTEXT) and, while searching, as NAMED_VALUE_FLOAT `YSEARCH_M`
 (distance flown along the leg, m). Config: `mission.along_pipe_search` (on), `..._speed_m_s`, `..._margin_m`.
 """
@@ -60,10 +61,13 @@ class AlongPipeTask(DaemonState):
                                                   margin_m=float(cfg.along_pipe_search_margin_m)))
             self._along_pipe_search = search
         if search.state is SearchState.FAILED and running:
-            # the operator resumed the mission paused by the failed search: fly on, and say so
-            search.override()
-            self._along_pipe_report(search, "operator resumed: flying on with the configured start's along-pipe "
-                                    "position (waypoints off by its error)", "warning")
+            # resumed by something other than the operator (a safety hold that began before the failure and has
+            # cleared): the failure still stands, only the operator may choose to fly on without y
+            self._along_pipe_report(search, "along-pipe position still not observed: mission paused again "
+                                    "(resume: fly on with the start's along-pipe position; abort: end the mission)",
+                                    "warning")
+            with contextlib.suppress(MissionError):
+                ex.pause(now_s)
             return None
         if search.state in (SearchState.IDLE, SearchState.FOUND) and running:
             if not snap.ok:
@@ -93,6 +97,16 @@ class AlongPipeTask(DaemonState):
         return Goal(T_ned_body_goal=step.goal, max_speed_m_s=search.limits.speed_m_s,
                     threshold_m=search.limits.arrive_m, yaw_threshold_rad=float(np.radians(5.0)),
                     action_index=int(out.progress.index), action_id=f"{out.progress.action_id}:along-pipe-search")
+
+    def _along_pipe_resumed_by_operator(self) -> None:
+        """The operator resumed the mission: after a failed search, fly on with the start's y, and say so."""
+        from companion.mission.along_pipe import SearchState
+
+        search = self._along_pipe_search
+        if search is not None and search.state is SearchState.FAILED:
+            search.override()
+            self._along_pipe_report(search, "operator resumed: flying on with the configured start's along-pipe "
+                                    "position (waypoints off by its error)", "warning")
 
     def _rack_locked(self) -> bool:
         """The rack tracker is locked (a good pose since its last restart, not lost for `lost_frames`)."""

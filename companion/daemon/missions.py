@@ -68,6 +68,7 @@ class Missions(DaemonState):
                 raise MissionError(f"resume refused: safety hold ({self._safety_view.last_action}) still needed")
             return
         ex.resume(self.clock.now())
+        self._along_pipe_resumed_by_operator()  # after a failed rack-end search: fly on without it (along_pipe_task)
         self.mode_owner.claim()  # motion resumes: the guided mode is ours to set again
 
     def abort_mission(self, mission_id: str | None = None) -> None:

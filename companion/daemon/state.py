@@ -205,4 +205,5 @@ class DaemonState:
         async def _enter_guided(self) -> None: ...  # missions
         def _safety_inputs(self) -> Any: ...  # watchdog
         def _along_pipe_known(self) -> bool: ...  # along_pipe_task
+        def _along_pipe_resumed_by_operator(self) -> None: ...  # along_pipe_task
         def _along_pipe_goal(self, ex: Any, out: Any, snap: Any, now_s: float) -> Any | None: ...  # along_pipe_task
