@@ -1,9 +1,10 @@
 """Issue #16: the rack-end search leg (`companion.daemon.along_pipe_task`). Put down 0.9 m north (along the
 pipes) and 0.35 m east of the configured start, the daemon acquires the rack on the deck but keeps the start's
-along-pipe position; before the first waypoint that needs it, it flies slowly toward the rack's end until
-the end is in view (y corrected), then flies the waypoint; or, with a leg too short to reach the end, it
-holds, pauses the mission and tells the GCS (the operator's resume then flies on without it). Asserted on what the fake autopilot received and its true pose
-(manual clock, 360x240 frames, as test_daemon_acquisition)."""
+along-pipe position; after the autopilot's take-off, before any waypoint is placed with it, it flies slowly
+toward the rack's end until the end is in view (y corrected), then flies the mission; or, with a leg too short
+to reach the end, it holds, pauses the mission and tells the GCS (the operator's resume then flies on without
+it). Asserted on what the fake autopilot received and its true pose (manual clock, 360x240 frames, as
+test_daemon_acquisition)."""
 
 from __future__ import annotations
 

@@ -10,10 +10,11 @@ calls `step(now_s, nav)` at its control rate (10-50 Hz) and acts on the output:
 - `output.hold`: no goal is active and the vehicle should hold where it is (paused, aborted,
   failed, or completed in the air);
 - `output.events`: mission events for the console, STATUSTEXT and the control API;
-- `output.needs_along_pipe`: the current action goes to a horizontal position (`servo`, `gotoxy`)
-  while `nav.along_pipe_known` is false (the position along the pipes is still a prior's, e.g. the
-  configured start's after an acquisition on the deck): it waits without a goal, its timers frozen,
-  until the daemon has found that position (or holds the vehicle and pauses the mission).
+- `output.needs_along_pipe`: the current action is about to place a goal with the horizontal
+  position (`servo`, `gotoxy`, and `takeoff`'s climb to its height once the autopilot's take-off is
+  done) while `nav.along_pipe_known` is false (the position along the pipes is still a prior's, e.g.
+  the configured start's after an acquisition on the deck): it waits without a goal, its timers
+  frozen, until the daemon has found that position (or holds the vehicle and pauses the mission).
 
 States: IDLE -> RUNNING <-> PAUSED -> COMPLETED | FAILED (an action failed or timed out:
 abort and hover) | ABORTED (operator or safety abort: hover). Action timers exclude paused time.
@@ -117,7 +118,7 @@ class NavSnapshot:
     home_T_ned_body: the home pose (4x4) if the daemon knows it, else the executor takes the
     first ok pose it sees after start() as home.
     along_pipe_known: the position along the rack's pipes (rack y) has been observed; False holds
-    `servo` and `gotoxy` actions before their goal is resolved (see the module docstring).
+    `servo`, `gotoxy` and `takeoff`'s climb before their goal is resolved (see the module docstring).
     """
 
     stamp_s: float
@@ -472,7 +473,10 @@ class MissionExecutor:
                 cur.request_ok = None
             if cur.phase == "takeoff" and cur.request_ok:
                 cur.phase = "climb"
-            if cur.phase == "climb" and cur.goal is None and nav.ok and self._home is not None:
+            # the climb's goal is "here": placed with an unobserved along-pipe position it (and the action's
+            # recorded waypoint) would be off by that position's error, so it waits like servo / gotoxy
+            if cur.phase == "climb" and cur.goal is None and nav.ok and self._home is not None \
+                    and self._along_pipe_ready(cur, now_s, nav):
                 T = self._T(nav)
                 p = T[:3, 3].copy()
                 p[2] = self._home[2, 3] - a.height_m
@@ -682,6 +686,8 @@ class MissionExecutor:
             return None
         a = cur.action
         end_s = self._paused_at if self._state is State.PAUSED and self._paused_at is not None else now_s
+        if _ALONG_PIPE_WAIT in cur.extra:  # the wait is not the action's time (as a pause is not)
+            end_s = min(end_s, float(cur.extra[_ALONG_PIPE_WAIT]))
         elapsed = end_s - cur.started_s
         dist: float | None = None
         yaw_err: float | None = None

@@ -406,7 +406,7 @@ def test_along_pipe_goals_wait_for_the_along_pipe_position_with_their_timers_fro
     assert out.state is State.FAILED and ex.results[-1].result == "timeout"
 
 
-def test_a_known_along_pipe_position_changes_nothing() -> None:
+def test_a_known_along_pipe_position_changes_nothing_and_an_unknown_one_stops_after_the_take_off() -> None:
     mission = load_mission(EXAMPLES / "fig6.xml")
     runs = []
     for known in (True, False):
@@ -416,10 +416,12 @@ def test_a_known_along_pipe_position_changes_nothing() -> None:
             stamp_s=t, T_ned_body=v.T, ok=v.ok, armed=v.armed, landed=v.landed, along_pipe_known=known)
         ex.start(0.0)
         v.run(0.0, 200.0 if known else 60.0)
-        runs.append((ex.state, [(r.action_id, r.result) for r in ex.results], any(o.needs_along_pipe
-                                                                                for o in v.outputs)))
-    (state_known, results_known, waited_known), (state_unknown, results_unknown, waited_unknown) = runs
-    assert state_known is State.COMPLETED and not waited_known
-    # unknown: the first gotoxy waits (the rest never starts); what came before it ran as with a known one
-    assert state_unknown is State.RUNNING and waited_unknown
-    assert results_unknown == results_known[: len(results_unknown)] and len(results_unknown) < len(results_known)
+        runs.append((ex, v))
+    (ex_known, v_known), (ex_unknown, v_unknown) = runs
+    assert ex_known.state is State.COMPLETED and not any(o.needs_along_pipe for o in v_known.outputs)
+    # unknown: armed and taken off (the autopilot's take-off needs no position), then the climb waits
+    assert ex_unknown.state is State.RUNNING and ex_unknown.results == ()
+    assert v_unknown.armed and not v_unknown.landed and v_unknown.commands == []
+    last = v_unknown.outputs[-1]
+    assert last.needs_along_pipe and last.goal is None and last.progress is not None
+    assert last.progress.action == "takeoff" and last.progress.elapsed_s == pytest.approx(0.2)  # arm, take off
