@@ -71,12 +71,18 @@ async def test_the_search_leg_finds_the_rack_end_before_the_first_waypoint(tmp_p
         t_search = await r.advance_until(lambda: any("looking for the rack's end" in t for t in _texts(r, t0)),
                                          max_s=40.0)
         err_search = _north_error_m(r)
+        status = r.daemon.status()
+        assert status["estimator"]["along_pipe_from_start"] is True
+        assert status["mission"]["along_pipe_search"]["state"] == "searching"
         t_found = await r.advance_until(lambda: any("rack end in view after" in t for t in _texts(r, t0)),
                                         max_s=30.0)
         leg = r.received("SET_POSITION_TARGET_LOCAL_NED", t_search)
         leg = [m for m in leg if m.time_s <= t_found]
         await r.advance(1.0)
         err_found = _north_error_m(r)
+        status = r.daemon.status()
+        assert status["estimator"]["along_pipe_from_start"] is False
+        assert status["mission"]["along_pipe_search"]["state"] == "found"
         ex = r.daemon.executor
         assert ex is not None
         await r.advance_until(lambda: ex.state is State.COMPLETED, max_s=40.0)
