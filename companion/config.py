@@ -462,6 +462,13 @@ class MissionConfig(_Section):
     # how long the take-off waits for the autopilot's pre-arm checks (ArduCopter's EKF aligns on the
     # vision poses for ~14 s after they start) before the action fails with the autopilot's reason
     arm_ready_timeout_s: float = field(default=40.0, metadata=_check(_gt(0)))
+    # before a servo / gotoxy waypoint, while the position along the pipes is still the configured start's
+    # (acquired on the deck, no rack end seen yet): fly a bounded leg toward the nearest rack end at this
+    # speed, at most this far past the end in the estimate, until the end is seen; else hold and pause
+    # (companion.mission.along_pipe; false: fly the waypoints with the start's along-pipe position)
+    along_pipe_search: bool = True
+    along_pipe_search_speed_m_s: float = field(default=0.2, metadata=_check(_gt(0), _between(0, 0.5)))
+    along_pipe_search_margin_m: float = field(default=0.5, metadata=_check(_between(0, 2)))
 
 
 @dataclass(frozen=True)

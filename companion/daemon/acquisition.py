@@ -23,7 +23,9 @@ import numpy as np
 
 from companion.checks import FloatArray
 
-__all__ = ["AcquisitionInputs", "RackAcquirer"]
+__all__ = ["END_SPAN_SIGMAS", "AcquisitionInputs", "RackAcquirer"]
+
+END_SPAN_SIGMAS = 2.0  # the rack's end is looked for within this many along-pipe stds of the prior (+ 0.2 m)
 
 
 @dataclass(frozen=True)
@@ -31,7 +33,8 @@ class AcquisitionInputs:
     """The vehicle's side of an acquisition prior, sampled with the frame.
 
     roll_rad, pitch_rad: autopilot attitude; height_above_rack_m/std: camera above the rack's support
-    plane; T_ned_body_hint: the filter's estimate or the start hint (its rack y and heading are used).
+    plane; T_ned_body_hint: the filter's estimate or the start hint (its rack y and heading are used);
+    from_start_hint: T_ned_body_hint is the configured start (never located by vision yet).
     """
 
     roll_rad: float
@@ -41,6 +44,7 @@ class AcquisitionInputs:
     T_ned_body_hint: FloatArray
     y_std_m: float = 1.0
     yaw_std_rad: float = 0.45
+    from_start_hint: bool = False
 
 
 class RackAcquirer:
@@ -67,6 +71,9 @@ class RackAcquirer:
         self.y_unobserved = False  # the tracker's rack y is a prior's: look for the rack's end while tracking
         self.y_fixes = 0
         self.last_y_fix_m = 0.0  # the last correction of y from the rack's end (m)
+        # the tracker's rack y is still the configured start's (an acquisition from the start hint kept it, and
+        # nothing has observed y since): a mission must not place along-pipe waypoints with it
+        self.y_from_start_hint = False
 
     def after_track(self, ok: bool) -> None:
         """Update the lock state with the tracker's verdict on this frame."""
@@ -105,6 +112,8 @@ class RackAcquirer:
         self.acquisitions += 1
         self.last_y_std_m = 0.0 if best.y_observed else float(inputs.y_std_m)
         self.y_unobserved = not best.y_observed
+        # sticky until y is observed: a re-acquisition from the filter's estimate still carries the start's y
+        self.y_from_start_hint = not best.y_observed and (self.y_from_start_hint or inputs.from_start_hint)
         T_rack_cam = np.asarray(best.T_rack_cam, dtype=np.float64).copy()
         if not best.y_observed:
             # nothing in view fixes the position along the pipes: keep the estimate's exactly (the refined
@@ -126,10 +135,14 @@ class RackAcquirer:
         if gray.ndim == 3:
             gray = np.asarray(gray[:, :, 0] if gray.shape[2] == 1 else
                               (gray @ np.array([0.114, 0.587, 0.299])).astype(np.uint8))
-        fix = rack_end_fix(gray, self.model, self.camera, T_rack_cam)
+        # the end is looked for as far from where the prior puts it as the prior's 2 std (+ the 15 cm of limbs
+        # needed beyond it): with rack_end_fix's default 1 m, a start 0.9 m off along the pipes is never fixed
+        span_m = max(1.0, END_SPAN_SIGMAS * self.last_y_std_m + 0.2)
+        fix = rack_end_fix(gray, self.model, self.camera, T_rack_cam, span_m=span_m)
         if not fix.found:
             return None
         self.y_unobserved = False
+        self.y_from_start_hint = False
         self.last_y_std_m = 0.0
         self.y_fixes += 1
         self.last_y_fix_m = fix.dy_m

@@ -17,7 +17,8 @@ the vehicle is put in its hold mode when it is armed, then tasks, camera, API an
 and the flight folder is flushed.
 
 One module per task, each a mixin of `companion.daemon.state.DaemonState` that `Daemon` combines:
-`wiring` (build and open), `vision_task`, `imu_task`, `control_task`, `missions`, `watchdog`, `health`
+`wiring` (build and open), `vision_task`, `imu_task`, `control_task` (with `along_pipe_task`, the rack-end
+search leg), `missions`, `watchdog`, `health`
 (health, status and the systemd notifier) and `api_controller`; this module keeps the lifecycle
 (start, stop, shutdown) and `run_daemon`.
 """
@@ -35,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.clock import Clock, SystemClock
+from companion.daemon.along_pipe_task import AlongPipeTask
 from companion.daemon.api_controller import ApiController
 from companion.daemon.control_task import ControlTask
 from companion.daemon.flight import FlightFolder
@@ -55,7 +57,8 @@ __all__ = ["Daemon", "DaemonOptions", "FrameRecord", "run_daemon"]
 _log = logging.getLogger("companion.daemon")
 
 
-class Daemon(Wiring, VisionTask, ImuTask, ControlTask, Missions, SafetyWatchdog, HealthTask, VideoTask, PageState):
+class Daemon(Wiring, VisionTask, ImuTask, ControlTask, AlongPipeTask, Missions, SafetyWatchdog, HealthTask, VideoTask,
+             PageState):
     """The companion daemon (an async context manager; see the module docstring)."""
 
     # ================================================================ lifecycle

@@ -1,6 +1,8 @@
 """The control task (20 Hz): mission executor -> servo law -> `SafetyManager.filter` -> link setpoint.
 
-Also the mode-ownership glue (`companion.daemon.arming.ModeOwner`) and the turn-first rule."""
+Also the mode-ownership glue (`companion.daemon.arming.ModeOwner`) and the turn-first rule. While the
+executor waits for the along-pipe position, the goal is the rack-end search leg's
+(`companion.daemon.along_pipe_task`)."""
 
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ class ControlTask(DaemonState):
             now - self.last_pose_sent_s <= 0.5
         T = np.asarray(nav.T_ned_body) if nav is not None else np.eye(4)
         return NavSnapshot(stamp_s=now, T_ned_body=T, ok=bool(fresh), armed=armed, landed=landed,
-                           home_T_ned_body=self._home_T_ned_body)
+                           home_T_ned_body=self._home_T_ned_body, along_pipe_known=self._along_pipe_known())
 
     async def _control_loop(self) -> None:
         from companion.control.types import VelocityCommand
@@ -60,22 +62,28 @@ class ControlTask(DaemonState):
                 self._mission_event(ev)
             if out.request is not None:
                 self._start_request(out.request)
+            goal = out.goal
+            if out.needs_along_pipe or self._along_pipe_search is not None:
+                # stepped while a leg is under way even when the executor is paused (its clock stops then)
+                search_goal = self._along_pipe_goal(ex, out, snap, now)
+                goal = search_goal if out.needs_along_pipe else goal
             if not self._mission_active():
                 if self._last_command is not None:
                     self.link.set_velocity_command(None)
                     self._last_command = None
                 continue
             cmd: Any = None
-            if out.goal is not None and snap.ok and self._safety_view.allow_mission:
+            if goal is not None and snap.ok and self._safety_view.allow_mission:
                 assert self._servo is not None
-                speed = min(out.goal.max_speed_m_s, self.config.safety.max_speed_m_s)
-                goal_T = self._turn_first(out.goal, np.asarray(snap.T_ned_body))
+                speed = min(goal.max_speed_m_s, self.config.safety.max_speed_m_s)
+                goal_T = self._turn_first(goal, np.asarray(snap.T_ned_body))
                 cmd = self._servo.update(snap.T_ned_body, goal_T, now, max_speed_m_s=speed)
-            elif out.goal is not None and self._safety_view.allow_mission and out.pending_request is None:
-                cmd = VelocityCommand.zero()
+            elif (goal is not None or out.needs_along_pipe) and self._safety_view.allow_mission and \
+                    out.pending_request is None:
+                cmd = VelocityCommand.zero()  # no fresh pose, or waiting for the along-pipe position: hover
             if cmd is not None and self.safety is not None:
                 cmd = self.safety.filter(cmd, self._safety_inputs(), now)
-            self._own_mode(ex, now, moving=out.goal is not None and self._safety_view.allow_mission,
+            self._own_mode(ex, now, moving=goal is not None and self._safety_view.allow_mission,
                            request_pending=out.pending_request is not None)
             if cmd is not None and out.pending_request is None:
                 self.link.set_velocity_command(cmd)

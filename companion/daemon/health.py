@@ -127,6 +127,9 @@ class HealthTask(DaemonState):
                 "actions": len(ex.mission.actions),
                 "done": len(ex.results),
             }
+            search = self._along_pipe_search
+            if search is not None:  # the rack-end search leg (along_pipe_task): its state and distance flown
+                mission["along_pipe_search"] = {"state": str(search.state), "flown_m": round(float(search.flown_m), 3)}
         if self.mission_refused is not None:
             if self.executor is None:
                 mission = {"state": "refused", "id": self.mission_refused["id"]}
@@ -161,6 +164,8 @@ class HealthTask(DaemonState):
                 "source": "none" if nav is None else str(nav.source),
                 "position_ned_m": pos,
                 "reset_counter": None if nav is None else int(nav.reset_counter),
+                # the position along the pipes is still the configured start's (acquired on the deck, no rack end seen)
+                "along_pipe_from_start": bool(self.along_pipe_from_start_hint),
                 "last_pose_age_s": None if self.last_pose_sent_s is None else round(now - self.last_pose_sent_s, 3),
                 # capture -> pose on the socket, median of the last 100 poses: what VISO_DELAY_MS is set from
                 "capture_to_send_ms_p50": (None if not self._latency_ms

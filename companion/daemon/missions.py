@@ -39,6 +39,7 @@ class Missions(DaemonState):
             raise MissionError(f"mission '{mission_id}' refused: {reason}")
         self.mission_refused = None
         self.executor = MissionExecutor(mission, T_ned_rack=self.T_ned_rack)
+        self._along_pipe_search = None  # a new mission gets a new rack-end search (along_pipe_task)
         self.mission_id = mission_id
         self._servo.reset() if self._servo is not None else None
         self.executor.start(self.clock.now())
@@ -67,6 +68,7 @@ class Missions(DaemonState):
                 raise MissionError(f"resume refused: safety hold ({self._safety_view.last_action}) still needed")
             return
         ex.resume(self.clock.now())
+        self._along_pipe_resumed_by_operator()  # after a failed rack-end search: fly on without it (along_pipe_task)
         self.mode_owner.claim()  # motion resumes: the guided mode is ours to set again
 
     def abort_mission(self, mission_id: str | None = None) -> None:

@@ -143,6 +143,13 @@ class VisionPipeline:
         # pose, taken as exact): the pipes' edges do not correct it, so the tracker keeps that error.
         self.rack_seed_along_pipe_std_m = 0.0
 
+    @property
+    def along_pipe_from_start_hint(self) -> bool:
+        """The rack tracker's position along the pipes is still the configured start's (acquired on the deck
+        without a crossing pipe in view, no rack end seen since), or its fix has not reached the filter yet."""
+        acq = self.acquirer
+        return acq is not None and (bool(acq.y_from_start_hint) or self._y_fix_pending)
+
     def T_rack_cam_from(self, T_ned_body: Any) -> FloatArray:
         """Camera pose in the rack frame for a body pose in NED."""
         return frames.T_rack_cam_from_T_ned_body(T_ned_body, self.T_ned_rack, self.T_body_cam)

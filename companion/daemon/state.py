@@ -128,6 +128,11 @@ class DaemonState:
         self.safety_output: Any | None = None
         self.mission_refused: dict[str, Any] | None = None
         self.mission_limits: Any | None = None
+        # the position along the pipes is still the configured start's (mirrored from the pipeline after each
+        # fusion; companion.daemon.along_pipe_task), and the mission's rack-end search (None: not started)
+        self.along_pipe_from_start_hint = False
+        self._along_pipe_search: Any | None = None
+        self._along_pipe_report_s = float("-inf")
         opts = self.options
         self.turn_first_rad = (math.radians(config.mission.turn_first_deg) if opts.turn_first_rad is None
                                else float(opts.turn_first_rad))
@@ -199,3 +204,6 @@ class DaemonState:
         def _start_request(self, request: Any) -> None: ...  # missions
         async def _enter_guided(self) -> None: ...  # missions
         def _safety_inputs(self) -> Any: ...  # watchdog
+        def _along_pipe_known(self) -> bool: ...  # along_pipe_task
+        def _along_pipe_resumed_by_operator(self) -> None: ...  # along_pipe_task
+        def _along_pipe_goal(self, ex: Any, out: Any, snap: Any, now_s: float) -> Any | None: ...  # along_pipe_task

@@ -74,6 +74,7 @@ class VisionTask(DaemonState):
         hint = self.options.initial_T_ned_body
         T_start = np.eye(4) if hint is None else np.asarray(hint, dtype=np.float64)
         T_hint = T_start
+        from_start = True
         y_std = 1.0
         state = self.link.state if self.link is not None else None
         # disarmed on the deck and never located by vision: the filter only dead-reckons from the start hint
@@ -84,6 +85,7 @@ class VisionTask(DaemonState):
             if math.isfinite(float(est.stamp_s)) and not (resting and str(est.source) == "none"
                                                           and self.counters.poses_sent == 0):
                 T_hint = np.asarray(est.T_ned_body, dtype=np.float64)
+                from_start = False
                 y_std = max(1.0, math.sqrt(float(np.max(np.diag(np.asarray(est.pose_covariance))[:2]))))
         # camera height above the rack's support plane: the autopilot's own height (baro / rangefinder EKF)
         # when it has one, else on the deck the start's (the vehicle rests where the configuration puts the
@@ -97,7 +99,7 @@ class VisionTask(DaemonState):
         height = float(self.T_ned_rack[2, 3]) - z_cam
         return AcquisitionInputs(roll_rad=roll, pitch_rad=pitch, height_above_rack_m=height,
                                  height_std_m=0.03 if resting else max(0.05 * abs(height), 0.1),
-                                 T_ned_body_hint=T_hint, y_std_m=y_std)
+                                 T_ned_body_hint=T_hint, y_std_m=y_std, from_start_hint=from_start)
 
     async def _vision_loop(self) -> None:
         assert self.pipeline is not None and self.camera is not None
@@ -167,6 +169,8 @@ class VisionTask(DaemonState):
             self.counters.vision_errors += 1
             self._event("fusion-error", level=logging.WARNING, error=str(exc))
             return
+        # mirrored here, after the filter has taken the fix: the control task reads it on this thread
+        self.along_pipe_from_start_hint = self.pipeline.along_pipe_from_start_hint
         self.last_nav = nav
         fresh = bool(nav.ok) and abs(float(nav.stamp_s) - float(frame.stamp_s)) < 1e-6
         acq = self.pipeline.acquirer

@@ -9,7 +9,12 @@ calls `step(now_s, nav)` at its control rate (10-50 Hz) and acts on the output:
   mode (no notify needed);
 - `output.hold`: no goal is active and the vehicle should hold where it is (paused, aborted,
   failed, or completed in the air);
-- `output.events`: mission events for the console, STATUSTEXT and the control API.
+- `output.events`: mission events for the console, STATUSTEXT and the control API;
+- `output.needs_along_pipe`: the current action is about to place a goal with the horizontal
+  position (`servo`, `gotoxy`, and `takeoff`'s climb to its height once the autopilot's take-off is
+  done) while `nav.along_pipe_known` is false (the position along the pipes is still a prior's, e.g.
+  the configured start's after an acquisition on the deck): it waits without a goal, its timers
+  frozen, until the daemon has found that position (or holds the vehicle and pauses the mission).
 
 States: IDLE -> RUNNING <-> PAUSED -> COMPLETED | FAILED (an action failed or timed out:
 abort and hover) | ABORTED (operator or safety abort: hover). Action timers exclude paused time.
@@ -71,6 +76,7 @@ class State(enum.StrEnum):
 
 
 _TIME_EPS_S = 1e-9  # float slack on time comparisons (s)
+_ALONG_PIPE_WAIT = "along_pipe_wait_s"  # _Running.extra key: when the action began waiting for the along-pipe position
 
 TERMINAL_STATES = frozenset({State.COMPLETED, State.FAILED, State.ABORTED})
 
@@ -92,6 +98,8 @@ class EventKind(enum.StrEnum):
     ACTION_STARTED = "action-started"
     ACTION_SUCCEEDED = "action-succeeded"
     ACTION_FAILED = "action-failed"
+    ACTION_WAITING = "action-waiting"  # waits for the along-pipe position (NavSnapshot.along_pipe_known)
+    ACTION_CONTINUED = "action-continued"  # ... and goes on
     REQUEST = "request"
     REQUEST_DONE = "request-done"
     MISSION_PAUSED = "mission-paused"
@@ -109,6 +117,8 @@ class NavSnapshot:
     ok: the pose is fresh and trustworthy; armed, landed: from the autopilot;
     home_T_ned_body: the home pose (4x4) if the daemon knows it, else the executor takes the
     first ok pose it sees after start() as home.
+    along_pipe_known: the position along the rack's pipes (rack y) has been observed; False holds
+    `servo`, `gotoxy` and `takeoff`'s climb before their goal is resolved (see the module docstring).
     """
 
     stamp_s: float
@@ -117,6 +127,7 @@ class NavSnapshot:
     armed: bool = False
     landed: bool = True
     home_T_ned_body: FloatArray | None = None
+    along_pipe_known: bool = True
 
 
 @dataclass(frozen=True)
@@ -217,6 +228,7 @@ class ExecutorOutput:
     hold: bool
     progress: Progress | None
     events: tuple[MissionEvent, ...]
+    needs_along_pipe: bool = False
 
 
 @dataclass
@@ -354,8 +366,9 @@ class MissionExecutor:
         paused_s = max(0.0, float(now_s) - (self._paused_at if self._paused_at is not None else float(now_s)))
         if self._current is not None:
             self._current.started_s += paused_s
-            if "hover_start_s" in self._current.extra:
-                self._current.extra["hover_start_s"] += paused_s
+            for key in ("hover_start_s", _ALONG_PIPE_WAIT):
+                if key in self._current.extra:
+                    self._current.extra[key] += paused_s
         self._paused_at = None
         self._state = State.RUNNING
         if self._new_request is not None and self._new_request.kind is RequestKind.HOLD:
@@ -413,6 +426,8 @@ class MissionExecutor:
             return
         outcome = self._evaluate(cur, now_s, nav)
         if outcome is None:
+            if _ALONG_PIPE_WAIT in cur.extra:
+                return  # the wait is not the action's time: the daemon bounds it (search leg, then a hold)
             if now_s - cur.started_s > cur.action.timeout_s:
                 self._fail(now_s, "timeout", f"timed out after {cur.action.timeout_s:g} s")
             return
@@ -458,7 +473,10 @@ class MissionExecutor:
                 cur.request_ok = None
             if cur.phase == "takeoff" and cur.request_ok:
                 cur.phase = "climb"
-            if cur.phase == "climb" and cur.goal is None and nav.ok and self._home is not None:
+            # the climb's goal is "here": placed with an unobserved along-pipe position it (and the action's
+            # recorded waypoint) would be off by that position's error, so it waits like servo / gotoxy
+            if cur.phase == "climb" and cur.goal is None and nav.ok and self._home is not None \
+                    and self._along_pipe_ready(cur, now_s, nav):
                 T = self._T(nav)
                 p = T[:3, 3].copy()
                 p[2] = self._home[2, 3] - a.height_m
@@ -477,10 +495,34 @@ class MissionExecutor:
                 T = self._T(nav)
                 cur.goal = self._goal(cur, self._flat(T, T[:3, 3]), self.mission.speed_m_s,
                                       self.mission.threshold_m, self.mission.yaw_threshold_rad)
+        elif cur.goal is None and isinstance(a, Servo | GotoXY) and not self._along_pipe_ready(cur, now_s, nav):
+            return
         elif cur.goal is None and nav.ok:
             cur.goal = self._resolve_motion_goal(cur, nav)
             if isinstance(a, Hover) and cur.goal is not None:
                 cur.extra["hover_start_s"] = now_s
+
+    def _along_pipe_ready(self, cur: _Running, now_s: float, nav: NavSnapshot) -> bool:
+        """Whether a horizontal goal may be resolved now; starts / ends the action's wait otherwise.
+
+        A goal placed with an along-pipe position the daemon has not observed would be off by that
+        position's error (up to the start error): the action waits instead, and its timers resume
+        with the time it waited added back.
+        """
+        waiting_since = cur.extra.get(_ALONG_PIPE_WAIT)
+        if not nav.along_pipe_known:
+            if waiting_since is None:
+                cur.extra[_ALONG_PIPE_WAIT] = now_s
+                self._emit(now_s, EventKind.ACTION_WAITING, f"action {cur.index + 1} {cur.action.tag} "
+                           f"'{cur.action.id}' waits for the along-pipe position", "warning", action=cur)
+            return False
+        if waiting_since is not None:
+            del cur.extra[_ALONG_PIPE_WAIT]
+            cur.started_s += max(0.0, now_s - float(waiting_since))
+            self._emit(now_s, EventKind.ACTION_CONTINUED, f"action {cur.index + 1} {cur.action.tag} "
+                       f"'{cur.action.id}' goes on: along-pipe position known after "
+                       f"{now_s - float(waiting_since):.1f} s", action=cur)
+        return True
 
     def _resolve_motion_goal(self, cur: _Running, nav: NavSnapshot) -> Goal | None:
         a = cur.action
@@ -644,6 +686,8 @@ class MissionExecutor:
             return None
         a = cur.action
         end_s = self._paused_at if self._state is State.PAUSED and self._paused_at is not None else now_s
+        if _ALONG_PIPE_WAIT in cur.extra:  # the wait is not the action's time (as a pause is not)
+            end_s = min(end_s, float(cur.extra[_ALONG_PIPE_WAIT]))
         elapsed = end_s - cur.started_s
         dist: float | None = None
         yaw_err: float | None = None
@@ -676,6 +720,8 @@ class MissionExecutor:
                 action_index=request.action_index, action_id=request.action_id,
             ))
         events, self._events = tuple(self._events), []
+        waiting = self._state is State.RUNNING and self._current is not None and \
+            _ALONG_PIPE_WAIT in self._current.extra
         return ExecutorOutput(time_s=now_s, state=self._state, goal=goal, request=request,
                               pending_request=self.pending_request, hold=hold,
-                              progress=self._progress(now_s, nav), events=events)
+                              progress=self._progress(now_s, nav), events=events, needs_along_pipe=waiting)

@@ -372,3 +372,56 @@ def test_gotoz_z_and_height_in_ned() -> None:
     assert out.goal is not None and out.progress is not None and out.progress.index == 1
     assert np.allclose(out.goal.T_ned_body_goal, pose(1.0, 2.0, 0.2 - 1.5, 0.7))  # 1.5 m above the given home
     assert ex.home_T_ned_body is not None and np.allclose(ex.home_T_ned_body, home)
+
+
+def test_along_pipe_goals_wait_for_the_along_pipe_position_with_their_timers_frozen() -> None:
+    rack = '<rack length="10"><pipe radius="0.15" gap="0.1"/><pipe radius="0.2" gap="0.1"/><pipe radius="0.15"/></rack>'
+    body = '<gotoz id="z" z="2.5"/>\n<servo id="s" pipe="2" height="2.0" y="4.0" yaw="0" timeout="5"/>'
+    mission = parse_mission(doc(body, 'name="r" frame="rack"', rack))
+    ex = MissionExecutor(mission)
+    ex.start(0.0)
+    T = default_T_ned_rack() @ pose(0.6, 1.0, 2.5)  # at the gotoz height: it is reached after the settle time
+
+    def nav(t: float, known: bool) -> NavSnapshot:
+        return NavSnapshot(t, T, armed=True, landed=False, along_pipe_known=known)
+
+    out = ex.step(0.0, nav(0.0, False))  # gotoz needs no along-pipe position: it goes on
+    assert out.goal is not None and not out.needs_along_pipe
+    out = ex.step(0.5, nav(0.5, False))  # gotoz settled; the servo waits
+    assert out.progress is not None and out.progress.action_id == "s"
+    assert out.goal is None and out.needs_along_pipe and out.state is State.RUNNING
+    assert EventKind.ACTION_WAITING in [e.kind for e in out.events]
+    out = ex.step(30.0, nav(30.0, False))  # far beyond the servo's 5 s timeout: still waiting, not failed
+    assert out.state is State.RUNNING and out.needs_along_pipe and out.goal is None and out.events == ()
+    ex.pause(30.0)
+    out = ex.step(31.0, nav(31.0, False))
+    assert out.state is State.PAUSED and not out.needs_along_pipe
+    ex.resume(40.0)
+    out = ex.step(41.0, nav(41.0, True))
+    assert out.goal is not None and not out.needs_along_pipe
+    assert EventKind.ACTION_CONTINUED in [e.kind for e in out.events]
+    assert out.progress is not None and out.progress.elapsed_s == pytest.approx(0.0)  # the wait is not counted
+    assert ex.step(45.9, nav(45.9, True)).state is State.RUNNING
+    out = ex.step(46.2, nav(46.2, True))  # 5 s after the wait ended: the servo's own timeout
+    assert out.state is State.FAILED and ex.results[-1].result == "timeout"
+
+
+def test_a_known_along_pipe_position_changes_nothing_and_an_unknown_one_stops_after_the_take_off() -> None:
+    mission = load_mission(EXAMPLES / "fig6.xml")
+    runs = []
+    for known in (True, False):
+        ex = MissionExecutor(mission)
+        v = Vehicle(ex)
+        v.nav = lambda t, v=v, known=known: NavSnapshot(  # type: ignore[method-assign]
+            stamp_s=t, T_ned_body=v.T, ok=v.ok, armed=v.armed, landed=v.landed, along_pipe_known=known)
+        ex.start(0.0)
+        v.run(0.0, 200.0 if known else 60.0)
+        runs.append((ex, v))
+    (ex_known, v_known), (ex_unknown, v_unknown) = runs
+    assert ex_known.state is State.COMPLETED and not any(o.needs_along_pipe for o in v_known.outputs)
+    # unknown: armed and taken off (the autopilot's take-off needs no position), then the climb waits
+    assert ex_unknown.state is State.RUNNING and ex_unknown.results == ()
+    assert v_unknown.armed and not v_unknown.landed and v_unknown.commands == []
+    last = v_unknown.outputs[-1]
+    assert last.needs_along_pipe and last.goal is None and last.progress is not None
+    assert last.progress.action == "takeoff" and last.progress.elapsed_s == pytest.approx(0.2)  # arm, take off
