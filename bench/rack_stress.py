@@ -324,7 +324,8 @@ def acceptance(cells: dict[str, dict[str, Any]], summary: dict[str, Any]) -> dic
 # The tracker as it was on main before 2026-11-26 (these options did not exist or had these values).
 OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tangent_px": 0.0, "ground_points": 0,
                "max_residual_px": 2.0, "init_search_range_m": 0.25, "texture_weight": 2.0, "relock_after_frames": 0,
-               "gap_scan": False, "edge_silhouette_px": 0, "unobserved_velocity_tau_s": 0.0}
+               "gap_scan": False, "edge_silhouette_px": 0, "unobserved_velocity_tau_s": 0.0,
+               "texture_refine_obs": 20}
 
 
 def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:

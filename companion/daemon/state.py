@@ -102,6 +102,7 @@ class DaemonState:
         self._safety_view = _SafetyView()
         self._rack_reset_pending = False
         self._rack_fail_streak = 0
+        self._rack_reset_reason = ""  # why the next re-seed of the rack tracker from the filter (flight log)
         # after an acquisition, until the filter takes the rack pose: no re-seed from its (older) estimate
         self._hold_rack_reseed = False
         self._unsubscribe: list[Callable[[], Any]] = []

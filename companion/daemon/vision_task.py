@@ -59,7 +59,8 @@ class VisionTask(DaemonState):
             if math.isfinite(float(latest.stamp_s)) and pos_std < 0.3:
                 reset = np.asarray(latest.T_ned_body)
                 self._rack_reset_pending = False
-                self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std)
+                self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std,
+                            reason=self._rack_reset_reason)
         return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset,
                            attitude_known=attitude_known, acquisition=self._acquisition_inputs(roll, pitch))
 
@@ -118,9 +119,11 @@ class VisionTask(DaemonState):
                     return
                 continue
             prev = self._latest_frame
-            if prev is not None and float(frame.stamp_s) - float(prev.stamp_s) > self.frame_gap_reset_s:
+            gap_s = 0.0 if prev is None else float(frame.stamp_s) - float(prev.stamp_s)
+            if gap_s > self.frame_gap_reset_s:
                 # the tracker's own motion model is stale after a gap: restart it from the IMU-propagated filter
                 self._rack_reset_pending = True
+                self._rack_reset_reason = f"frame gap {gap_s:.2f} s"
             self._latest_frame = frame
             inputs = self._frame_inputs()
             try:
@@ -187,6 +190,8 @@ class VisionTask(DaemonState):
                 self._rack_fail_streak + 1
             if self._rack_fail_streak >= 2:
                 self._rack_reset_pending = True
+                status = str(getattr(m.rack, "status", "") or "")
+                self._rack_reset_reason = f"tracker: {status}" if not m.rack_ok else "pose not taken by the filter"
                 self._rack_fail_streak = 0
         sent = False
         if fresh:

@@ -32,6 +32,11 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "unobserved_velocity_tau_s": 0.0,
     "gap_scan": False,
     "texture_weight": 2.0,  # flown on ArduCopter; 20 put a waypoint 17 cm off (docs/rack.md)
+    "texture_refine_obs": 20,
+    # the filter treats each rack pose as an absolute fix and cannot carry the along-pipe position on the
+    # IMU for seconds (companion sim, field appearance, 2026-11-26: 0.7-1.9 m off within 10 s), so the
+    # daemon keeps the solver's covariance there (docs/rack.md, "Fourth session on #14")
+    "along_pipe_unobserved_speed_m_s": 0.0,
 }
 
 

@@ -55,6 +55,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._start_std = (_positive(position_std_m, "position_std_m", cfg.reset_prior_translation_m),
                            _positive(rotation_std_rad, "rotation_std_rad", cfg.reset_prior_rotation_rad))
         self._lost_frames = 0
+        self._along_std_m = self._start_std[0]
         if cumulative_gaps is not None:
             g = np.asarray(cumulative_gaps, dtype=np.float64).ravel()
             if g.size != self._n_gaps:
@@ -83,6 +84,11 @@ class RackTracker(TrackerSolve, TrackerMaps):
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         return self._T.copy()
+
+    @property
+    def along_pipe_std_m(self) -> float:
+        """Standard deviation (m) of the last pose's position along the pipes (see `along_pipe.py`)."""
+        return float(self._along_std_m)
 
     def track(
         self, image: Any, stamp_s: float, R_prior: Any = None, R_prior_std_rad: float | None = None
@@ -252,6 +258,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             if len(self._texture):
                 self._texture.uv_last = tex_uv
             cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)
+        cov = self._along_pipe_covariance(cov, last, ok, dt_s, n_tex)
         self._prev_gray = gray.copy()
         self._last_stamp = float(stamp_s)
         self._frames += 1

@@ -67,7 +67,9 @@ class RackTrackerConfig:
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
-    a point's 3-D position is averaged over (1 = keep the position from the first sighting),
+    a point's 3-D position is averaged over (1 = keep the position from the first sighting: averaging
+    re-places the points from poses that they themselves hold along the pipes, so a lag there feeds
+    back into the map and grows; stress bench 2026-11-26),
     `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
     `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
     `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
@@ -78,7 +80,13 @@ class RackTrackerConfig:
     Health: `min_edge_points` agreeing samples, `min_inlier_fraction`, `max_residual_px`
     robust residual std, `max_condition` of the normalised information matrix, `inlier_px`
     agreement threshold; `covariance_inflation` multiplies the covariance (edge samples along
-    one limb are correlated).
+    one limb are correlated). Along the pipes the reported covariance carries a standard deviation
+    across frames (`along_pipe.py`): it grows by `along_pipe_unobserved_speed_m_s` (m/s) on frames
+    where fewer than three texture/ground points hold the position there, by `along_pipe_points_drift`
+    times the along-pipe distance moved where they do (frame-to-frame points carry the position, with
+    drift, but never correct it), and shrinks only with edges that cross the pipes' direction (a crossing
+    pipe, a pipe's end) or a `reset`; 0 = the solver's covariance alone (which conditions each frame on
+    the previous pose and says ~1 cm after metres without texture).
     """
 
     samples_per_limb: int = 32
@@ -134,9 +142,11 @@ class RackTrackerConfig:
     lk_window_px: int = 11
     lk_levels: int = 2
     texture_max_residual_px: float = 2.5
-    texture_refine_obs: int = 20
+    texture_refine_obs: int = 1
     texture_min_distance_px: float = 12.0
     texture_min_incidence_cos: float = 0.4
+    along_pipe_unobserved_speed_m_s: float = 0.5
+    along_pipe_points_drift: float = 0.2
     texture_min_corner_ratio: float = 10.0
     texture_templates: bool = True
     template_half_px: int = 5

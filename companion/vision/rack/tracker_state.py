@@ -10,6 +10,7 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.errors import InputError
+from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, widen_along
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.texture import TextureMap
 from companion.vision.rack.tracker_config import RackTrackerConfig
@@ -45,6 +46,7 @@ class TrackerState:
         # pose's (`reset_prior_*` or the caller's), or the re-lock prior's after rejected frames.
         self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
         self._lost_frames = 0
+        self._along_std_m = self._start_std[0]  # std of the position along the pipes (`along_pipe.py`)
         self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
         self._since_detect = 0
         self._detect_short = False
@@ -101,6 +103,33 @@ class TrackerState:
         if not np.isfinite(std) or std <= 0.0:
             raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
         return R, std
+
+    def _along_pipe_covariance(self, cov: FloatArray, last: dict[str, Any], ok: bool, dt_s: float | None,
+                               n_tex: int) -> FloatArray:
+        """This frame's covariance (6x6, camera frame) with the along-pipe standard deviation carried
+        across frames (`along_pipe.py`); updates that standard deviation."""
+        cfg = self.config
+        if cfg.along_pipe_unobserved_speed_m_s <= 0.0 or self._T is None:
+            return cov
+        e = self._T[:3, :3][1, :]  # the rack's +y (the pipes' direction) in the camera frame
+        dt = 0.0 if dt_s is None or not 0.0 < dt_s <= 0.5 else float(dt_s)
+        edge_var = float("inf")
+        held = False
+        if ok:
+            n_edge = int(last["n_edge"])
+            info = edge_information_along(last["A"][:n_edge, :3], last["w"][:n_edge], e)
+            # Edges across the pipes (a crossing pipe, an end) correct the along-pipe position only when
+            # it was known to within the edge search: further off they were matched to other structures.
+            depth_m = max(float(self._T[2, 3]), 0.1)  # camera height above the support plane ~ depth
+            std_px = self._along_std_m * self.camera.fx / depth_m
+            if info > 0.0 and std_px <= 0.5 * cfg.search_range_px:
+                edge_var = self._scale2 * cfg.covariance_inflation / info
+            n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
+            held = n_tex + n_ground >= 3
+        moved = dt * float(self._velocity[:3] @ e)
+        self._along_std_m = along_pipe_std(self._along_std_m, dt, moved, held, edge_var,
+                                           cfg.along_pipe_unobserved_speed_m_s, cfg.along_pipe_points_drift)
+        return widen_along(cov, e, self._along_std_m)
 
     def _reset_ground(self) -> None:
         # pipes' silhouettes at this frame's prediction and the ground mask they give (`ground.ground_mask`)

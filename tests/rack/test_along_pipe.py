@@ -1,0 +1,84 @@
+"""The rack tracker's along-pipe standard deviation (`along_pipe.py`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.camera import PinholeCamera
+from companion.data import data_path
+from companion.geometry import se3
+from companion.sim.rack_scene import RackScene
+from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, widen_along
+
+CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+PARALLEL = RackModel.parallel(radii=[0.15, 0.2, 0.15, 0.175], gaps=[0.1] * 3, length=10.0)
+PAPER = RackModel.load(data_path("racks/paper_5pipe.toml"))
+
+
+def _along_std(est_cov: np.ndarray, T_rack_cam: np.ndarray) -> float:
+    e = T_rack_cam[:3, :3][1, :]
+    return math.sqrt(float(e @ est_cov[:3, :3] @ e))
+
+
+def test_std_grows_unobserved_is_held_by_points_and_shrinks_with_edges() -> None:
+    s = along_pipe_std(0.01, 0.1, 0.05, False, math.inf, 0.5, 0.2)
+    assert s == pytest.approx(0.06)  # unseen: 0.5 m/s for 0.1 s
+    s = along_pipe_std(0.01, 0.1, 0.05, True, math.inf, 0.5, 0.2)
+    assert s == pytest.approx(0.02)  # carried by points: 20 % of the 5 cm moved
+    s = along_pipe_std(0.06, 0.1, 0.0, True, 0.01**2, 0.5, 0.2)
+    assert s == pytest.approx(1.0 / math.sqrt(1 / 0.06**2 + 1 / 0.01**2))
+
+
+def test_widen_along_adds_only_along_the_direction() -> None:
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-4
+    e = np.array([0.0, 0.6, 0.8])
+    out = widen_along(cov, e, 1.0)
+    assert float(e @ out[:3, :3] @ e) == pytest.approx(1.0)
+    n = np.array([1.0, 0.0, 0.0])  # orthogonal to e: unchanged
+    assert float(n @ out[:3, :3] @ n) == pytest.approx(float(n @ cov[:3, :3] @ n))
+    assert np.array_equal(widen_along(cov, e, 1e-6), cov)  # never narrows
+
+
+def test_limbs_of_parallel_pipes_carry_no_information_along_them() -> None:
+    e = np.array([0.0, 1.0, 0.0])
+    A = np.array([[1.0, 0.0, 0.3], [-0.5, 0.0, 0.1]])  # translation Jacobians of limb rows: no y part
+    assert edge_information_along(A, np.ones(2), e) == 0.0
+    assert edge_information_along(np.array([[0.0, 2.0, 0.0]]), np.array([3.0]), e) == pytest.approx(12.0)
+
+
+def _run(model: RackModel, y0: float, y1: float, frames: int, cfg: RackTrackerConfig) -> tuple[RackTracker, list]:
+    scene = RackScene(model, seed=5)
+    tr = RackTracker(model, CAM, cfg)
+    rng = np.random.default_rng(1)
+    out = []
+    for k, y in enumerate(np.linspace(y0, y1, frames)):
+        T = se3.make(R_DOWN, [0.9, float(y), 2.4])
+        if k == 0:
+            tr.reset(T)
+        est = tr.track(scene.render(T, CAM, noise_std=3.0, rng=rng), 0.04 * k)
+        out.append((T, est))
+    return tr, out
+
+
+def test_reported_along_pipe_std_grows_without_texture_and_not_over_a_crossing_pipe() -> None:
+    """Sliding 0.5 m along bare parallel pipes: the tracker cannot see it and now says so; over the paper
+    rack's crossing pipe (y = 6 m) the edges hold the along-pipe position and the std stays small."""
+    cfg = RackTrackerConfig(max_texture_points=0, ground_points=0)
+    _tr, out = _run(PARALLEL, 4.0, 4.5, 26, cfg)
+    T, est = out[-1]
+    err = abs(float(est.T_rack_cam[1, 3] - T[1, 3]))
+    std = _along_std(np.asarray(est.covariance), np.asarray(est.T_rack_cam))
+    assert err > 0.1  # nothing observes the slide ...
+    assert std >= err  # ... and the covariance covers it (it said ~1 cm before)
+    _tr, out = _run(PAPER, 5.9, 6.1, 11, cfg)
+    T, est = out[-1]
+    assert est.ok
+    assert abs(float(est.T_rack_cam[1, 3] - T[1, 3])) < 0.01
+    assert _along_std(np.asarray(est.covariance), np.asarray(est.T_rack_cam)) < 0.02
