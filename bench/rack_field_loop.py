@@ -144,7 +144,8 @@ def main() -> None:
 
     out = {"benchmark": "rack_field_loop", "appearance": args.appearance, "seed": args.seed,
            "settings": "library" if args.library else "daemon", "overrides": parse_set(args.set),
-           "height_above_deck_m": args.height, "wobble": args.wobble, "prior_std_deg": args.prior_std_deg, "frames": len(poses),
+           "height_above_deck_m": args.height, "wobble": args.wobble, "prior_std_deg": args.prior_std_deg,
+           "frames": len(poses),
            "lost_frames": lost, "frames_per_s": round(len(poses) / t_s, 1), **stats(np.ones(len(poses), bool)),
            "phases": {n: stats(ph == n) for n, _ in waypoints(args.height)[1:]}}
     print(json.dumps(out))
