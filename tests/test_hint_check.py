@@ -50,11 +50,11 @@ def test_one_pipe_off_needs_two_consistent_disagreements() -> None:
     tracked, acquired = _pose(1.05, 1.08, 0.0), _pose(1.48, 1.0, 0.0)
     first = checker.check(tracked, COV_TIGHT, acquired, COV_TIGHT)
     assert first.outcome == "disagrees" and checker.pending and not checker.due
-    for _ in range(2):
-        checker.tick()
-    assert not checker.due
-    checker.tick()
-    assert checker.due
+    # `due` is read for the next frame before that frame's tick: checks on frames 0, 3, 6, ...
+    checker.tick()  # frame 1
+    assert not checker.due  # frame 2 gets none
+    checker.tick()  # frame 2
+    assert checker.due  # frame 3 gets one
     # a confident answer elsewhere (not consistent with the first) does not move the lock: it replaces it
     other = checker.check(tracked, COV_TIGHT, _pose(0.62, 1.0, 0.0), COV_TIGHT)
     assert other.outcome == "disagrees" and checker.pending

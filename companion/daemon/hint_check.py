@@ -110,7 +110,7 @@ class HintChecker:
     def check(self, T_rack_cam_tracked: FloatArray, cov_tracked: FloatArray, T_rack_cam_acquired: FloatArray | None,
               cov_acquired: FloatArray | None, status: str = "") -> HintCheck:
         """One attempt: the tracker's pose on this frame and the confident acquisition's (None: not confident)."""
-        self._since_attempt = 0
+        self._since_attempt = 1  # this frame counts: the next check `every_frames` frames later
         self.attempts += 1
         if T_rack_cam_acquired is None or cov_acquired is None:
             self.last = HintCheck("no-confident-pose", status=status)

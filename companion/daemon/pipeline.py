@@ -239,7 +239,7 @@ class VisionPipeline:
         checker, acq = self.hint_checker, self.acquirer
         if checker is None or acq is None or not checker.pending:
             return None, rack, acquired
-        checker.tick()
+        checker.tick()  # counted before a check, which restarts the count: one check every `every_frames` frames
         if acquired or acq.acquiring or inputs.acquisition is None or not checker.due or not bool(rack.ok):
             return None, rack, acquired
         result = acq.attempt(image, inputs.acquisition)
