@@ -393,6 +393,10 @@ class VisionConfig(_Section):
     # find the rack in the image when the tracker does not lock from the start pose (a hint, not a survey)
     # or loses the rack (companion.daemon.acquisition); false: only the start pose and the filter re-seed it
     rack_acquire: bool = True
+    # the tracker's lock from the start pose is checked against an acquisition on the deck (issue #16,
+    # companion.daemon.hint_check): "withhold" its poses until verified (disarmed: no arming on an unverified
+    # lock), "report" send them and say they are unverified, "off" no check
+    rack_verify_start: Literal["withhold", "report", "off"] = "withhold"
     # the autopilot's roll and pitch as the rack tracker's attitude prior, at this standard deviation
     # (deg; 0 = vision only): it separates a roll about the pipes from a slide across them
     rack_attitude_prior_std_deg: float = field(default=1.0, metadata=_check(_between(0, 45)))

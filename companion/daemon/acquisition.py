@@ -89,11 +89,23 @@ class RackAcquirer:
             self.locked = False
 
     def acquire(self, image: Any, inputs: AcquisitionInputs) -> FloatArray | None:
-        """One attempt on `image`; the acquired T_rack_cam when confident, else None."""
+        """One attempt on `image`; the acquired T_rack_cam when confident (the lock state follows it), else None."""
+        result = self.attempt(image, inputs)
+        if not result.confident or result.best is None:
+            return None
+        return self.commit(result, inputs)
+
+    def _T_rack_cam_hint(self, inputs: AcquisitionInputs) -> FloatArray:
+        """The camera pose in the rack frame of the inputs' hint (4x4)."""
+        T_rack_body = np.linalg.inv(self.T_ned_rack) @ np.asarray(inputs.T_ned_body_hint, dtype=np.float64)
+        T: FloatArray = T_rack_body @ self.T_body_cam
+        return T
+
+    def attempt(self, image: Any, inputs: AcquisitionInputs) -> Any:
+        """One `acquire_rack` call on `image` with the inputs' prior; the `AcquisitionResult` (nothing taken)."""
         from companion.vision.rack import AcquisitionPrior, acquire_rack
 
-        T_rack_body = np.linalg.inv(self.T_ned_rack) @ np.asarray(inputs.T_ned_body_hint, dtype=np.float64)
-        T_rack_cam_hint = T_rack_body @ self.T_body_cam
+        T_rack_cam_hint = self._T_rack_cam_hint(inputs)
         yaw = math.atan2(float(inputs.T_ned_body_hint[1, 0]), float(inputs.T_ned_body_hint[0, 0]))
         prior = AcquisitionPrior(
             roll_rad=inputs.roll_rad, pitch_rad=inputs.pitch_rad,
@@ -103,8 +115,11 @@ class RackAcquirer:
         self.attempts += 1
         result = acquire_rack(image, self.model, self.camera, prior, self.config)
         self.last = result
-        if not result.confident or result.best is None:
-            return None
+        return result
+
+    def commit(self, result: Any, inputs: AcquisitionInputs) -> FloatArray:
+        """Take a confident `result` of `attempt`: the lock state follows it; returns the T_rack_cam to restart
+        the tracker at (y kept from the prior when no crossing pipe observed it)."""
         best = result.best
         self.acquiring = False
         self.locked = False  # until the tracker confirms it
@@ -118,7 +133,7 @@ class RackAcquirer:
         if not best.y_observed:
             # nothing in view fixes the position along the pipes: keep the estimate's exactly (the refined
             # hypothesis can slide along them), so a re-acquisition never steps further than the drift
-            T_rack_cam[1, 3] = T_rack_cam_hint[1, 3]
+            T_rack_cam[1, 3] = self._T_rack_cam_hint(inputs)[1, 3]
         return T_rack_cam
 
     def fix_y(self, image: Any, T_rack_cam: FloatArray) -> FloatArray | None:

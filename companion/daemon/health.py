@@ -166,6 +166,8 @@ class HealthTask(DaemonState):
                 "reset_counter": None if nav is None else int(nav.reset_counter),
                 # the position along the pipes is still the configured start's (acquired on the deck, no rack end seen)
                 "along_pipe_from_start": bool(self.along_pipe_from_start_hint),
+                # how the rack lock was established: verified / re-acquired / acquired / unverified / unchecked
+                "rack_lock": self.rack_lock,
                 "last_pose_age_s": None if self.last_pose_sent_s is None else round(now - self.last_pose_sent_s, 3),
                 # capture -> pose on the socket, median of the last 100 poses: what VISO_DELAY_MS is set from
                 "capture_to_send_ms_p50": (None if not self._latency_ms

@@ -68,6 +68,7 @@ class Measurement:
     rack_acquired: bool = False  # the rack was acquired from this image and the tracker restarted there
     acquisition: Any | None = None  # the `AcquisitionResult` of an attempt on this frame
     rack_y_fixed: bool = False  # the tracker's along-pipe position was corrected from the rack's end
+    hint_check: Any | None = None  # the `HintCheck` of the start-hint lock made on this frame
 
     @property
     def rack_ok(self) -> bool:
@@ -98,6 +99,7 @@ class VisionPipeline:
         ground_pipes_in_view_rel_std: float = 1.0,
         acquire: bool = True,
         rack_attitude_prior_std_rad: float = 0.0,
+        verify_start: bool = True,
     ) -> None:
         if source not in SOURCES:
             raise ConfigError(f"vision.source: must be one of {SOURCES}, got {source!r}")
@@ -115,6 +117,7 @@ class VisionPipeline:
         T0 = np.eye(4) if initial_T_ned_body is None else check_transform(initial_T_ned_body, "initial_T_ned_body")
         self.rack_tracker: Any | None = None
         self.acquirer: Any | None = None  # `RackAcquirer` when acquisition is on (vision.rack_acquire)
+        self.hint_checker: Any | None = None  # `HintChecker` of the start-hint lock (vision.rack_verify_start)
         self._y_fix_pending = False  # y was fixed on a frame the tracker missed: mark its next good pose
         self._pipe_top_m = 0.0  # mean height of the parallel pipes' tops above the support plane (m)
         self.ground_odometer: Any | None = None
@@ -129,6 +132,11 @@ class VisionPipeline:
                 from companion.daemon.acquisition import RackAcquirer
 
                 self.acquirer = RackAcquirer(model, camera, self.T_body_cam, self.T_ned_rack)
+                if verify_start:
+                    from companion.daemon.hint_check import HintChecker
+
+                    # the tracker starts from the start hint: check that lock against the image (hint_check.py)
+                    self.hint_checker = HintChecker()
         if source in ("ground", "auto"):
             from companion.vision.ground import GroundOdometer, GroundOdometerConfig
 
@@ -191,10 +199,13 @@ class VisionPipeline:
             if T_rack_cam is not None:
                 self.rack_tracker.reset(T_rack_cam)
                 acquired = True
+                if self.hint_checker is not None and self.hint_checker.pending:
+                    self.hint_checker.settle("acquired")  # located by the image: no longer the hint's lock
         if self.rack_tracker is not None:
             # the tracker keeps running while acquiring: the daemon's re-seed from the filter stays the first
             # way back (it works where acquisition cannot, e.g. on the deck right over the pipes)
             rack = self.rack_tracker.track(image, stamp_s, **self._attitude_prior(inputs))
+            hint_check, rack, acquired = self._check_hint_lock(image, stamp_s, inputs, rack, acquired)
             if acq is not None:
                 acq.after_track(bool(rack.ok))
                 ok = bool(rack.ok)
@@ -215,10 +226,32 @@ class VisionPipeline:
         self.frames += 1
         m = Measurement(stamp_s=stamp_s, seq=seq, rack=rack, ground=ground, process_s=time.perf_counter() - t0,
                         rack_reset=rack_reset, rack_acquired=acquired, acquisition=acquisition,
-                        rack_y_fixed=y_fixed)
+                        rack_y_fixed=y_fixed, hint_check=hint_check)
         self.rack_ok_frames += int(m.rack_ok)
         self.ground_ok_frames += int(m.ground_ok)
         return m
+
+    def _check_hint_lock(self, image: Any, stamp_s: float, inputs: FrameInputs, rack: Any,
+                         acquired: bool) -> tuple[Any | None, Any, bool]:
+        """Check the tracker's lock from the start hint against an acquisition on this image when one is due and
+        the daemon gave a prior (`hint_check.py`); moves the tracker to the acquired pose when the check says so
+        (re-tracked on this image). Returns (the `HintCheck` or None, this frame's rack estimate, acquired)."""
+        checker, acq = self.hint_checker, self.acquirer
+        if checker is None or acq is None or not checker.pending:
+            return None, rack, acquired
+        checker.tick()  # counted before a check, which restarts the count: one check every `every_frames` frames
+        if acquired or acq.acquiring or inputs.acquisition is None or not checker.due or not bool(rack.ok):
+            return None, rack, acquired
+        result = acq.attempt(image, inputs.acquisition)
+        best = result.best if result.confident else None
+        check = checker.check(np.asarray(rack.T_rack_cam, dtype=np.float64), np.asarray(rack.covariance),
+                              None if best is None else np.asarray(best.T_rack_cam, dtype=np.float64),
+                              None if best is None else np.asarray(best.covariance), str(result.status))
+        if check.outcome != "re-acquire":
+            return check, rack, acquired
+        assert self.rack_tracker is not None
+        self.rack_tracker.reset(acq.commit(result, inputs.acquisition))
+        return check, self.rack_tracker.track(image, stamp_s, **self._attitude_prior(inputs)), True
 
     def fuse(self, measurement: Measurement, nav_filter: Any) -> Any:
         """Feed one measurement to the navigation filter and return its estimate (event-loop thread).

@@ -132,6 +132,8 @@ class DaemonState:
         # the position along the pipes is still the configured start's (mirrored from the pipeline after each
         # fusion; companion.daemon.along_pipe_task), and the mission's rack-end search (None: not started)
         self.along_pipe_from_start_hint = False
+        # how the rack tracker's lock was established (`HintCheckTask.rack_lock_state`, mirrored after each frame)
+        self.rack_lock = "unchecked"
         self._along_pipe_search: Any | None = None
         self._along_pipe_report_s = float("-inf")
         opts = self.options

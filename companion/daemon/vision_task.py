@@ -13,15 +13,16 @@ from typing import Any
 
 import numpy as np
 
+from companion.daemon.hint_task import HintCheckTask
 from companion.daemon.pipeline import FrameInputs, Measurement
-from companion.daemon.state import DaemonState, FrameRecord
+from companion.daemon.state import FrameRecord
 from companion.errors import CameraError, CompanionError
 
 __all__ = ["VisionTask"]
 
 
-class VisionTask(DaemonState):
-    """The vision loop and what happens to each measured frame."""
+class VisionTask(HintCheckTask):
+    """The vision loop and what happens to each measured frame (the start-hint lock check: `HintCheckTask`)."""
 
     def _on_camera_lost(self, reason: str) -> None:
         self.camera_ok = False
@@ -65,10 +66,13 @@ class VisionTask(DaemonState):
                            attitude_known=attitude_known, acquisition=self._acquisition_inputs(roll, pitch))
 
     def _acquisition_inputs(self, roll: float, pitch: float) -> Any | None:
-        """The vehicle's prior for a rack acquisition, when the pipeline is acquiring (else None)."""
+        """The vehicle's prior for a rack acquisition, when the pipeline is acquiring or a check of the start-hint
+        lock is due (else None)."""
         acq = None if self.pipeline is None else self.pipeline.acquirer
-        if acq is None or not acq.acquiring:
+        if acq is None:
             return None
+        if not acq.acquiring:
+            return self._hint_check_inputs(roll, pitch)
         from companion.daemon.acquisition import AcquisitionInputs
 
         nf = self.nav_filter
@@ -162,6 +166,9 @@ class VisionTask(DaemonState):
         self.counters.frames += 1
         if m.acquisition is not None:
             self._report_acquisition(m)
+        if m.hint_check is not None:
+            self._report_hint_check(m)
+        self._hint_lock_update()
         if m.rack_y_fixed and self.pipeline.acquirer is not None:
             dy = float(self.pipeline.acquirer.last_y_fix_m)
             self._event("rack-y-fixed", dy_m=round(dy, 3))
@@ -196,7 +203,7 @@ class VisionTask(DaemonState):
         sent = False
         if fresh:
             self.last_fresh_pose_s = float(frame.stamp_s)
-        if fresh and self._safety_view.send_poses and self.link is not None:
+        if fresh and self._safety_view.send_poses and self.link is not None and not self._withhold_unverified(nav):
             from drivers.mavlink import PoseOut
 
             pose = PoseOut(

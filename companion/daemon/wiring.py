@@ -194,5 +194,6 @@ class Wiring(DaemonState):
             rack_std_floor=rack_std_floor_from_config(cfg.vision),
             rack_along_pipe_std_m=self.rack_along_pipe_std_m,
             acquire=bool(cfg.vision.rack_acquire),
+            verify_start=str(cfg.vision.rack_verify_start) != "off",
             rack_attitude_prior_std_rad=math.radians(float(cfg.vision.rack_attitude_prior_std_deg)),
         )
