@@ -49,8 +49,8 @@ def render(path: str, views: int, appearance: str, seed: int, yaw_std_deg: float
     print(json.dumps({"cached": path, "attempts": len(cases)}))
 
 
-def worker(root: str, path: str) -> None:
-    """Serve `index repeat` lines from stdin: one JSON line per request (times and the decision)."""
+def _load(root: str, path: str) -> tuple[Any, dict[str, Any], Any, list[dict[str, Any]]]:
+    """Checkout `root`'s `acquire_rack`, the bench's rack models, the 720x480 camera and the cached attempts."""
     sys.path.insert(0, root)
     import cv2
 
@@ -62,10 +62,16 @@ def worker(root: str, path: str) -> None:
     import rack_acquire
 
     models = dict(rack_acquire.racks())
+    assert all(isinstance(m, RackModel) for m in models.values())
     cam = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
     with open(path, "rb") as f:
         cases = pickle.load(f)["cases"]
-    assert all(isinstance(m, RackModel) for m in models.values())
+    return acquire_rack, models, cam, cases
+
+
+def worker(root: str, path: str) -> None:
+    """Serve `index repeat` lines from stdin: one JSON line per request (times and the decision)."""
+    acquire_rack, models, cam, cases = _load(root, path)
     for line in sys.stdin:
         i, rep = (int(v) for v in line.split())
         c = cases[i]
@@ -84,23 +90,10 @@ def worker(root: str, path: str) -> None:
 def run(root: str, path: str, count: int, profile: bool) -> None:
     """One warm-up call, then `acquire_rack` on the first `count` cached attempts of checkout `root`
     (for `valgrind --tool=callgrind`: instructions with `count` minus with 0), under cProfile when asked."""
-    sys.path.insert(0, root)
     import cProfile
     import pstats
 
-    import cv2
-
-    from companion.camera import PinholeCamera
-    from companion.vision.rack import acquire_rack
-
-    cv2.setNumThreads(1)
-    sys.path.insert(0, os.path.join(root, "bench"))
-    import rack_acquire
-
-    models = dict(rack_acquire.racks())
-    cam = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
-    with open(path, "rb") as f:
-        cases = pickle.load(f)["cases"]
+    acquire_rack, models, cam, cases = _load(root, path)
     acquire_rack(cases[0]["img"], models[cases[0]["rack"]], cam, cases[0]["prior"])
     prof = cProfile.Profile() if profile else None
     if prof is not None:

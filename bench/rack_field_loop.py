@@ -17,7 +17,6 @@ orientation error (deg), lost frames, frames/s inside `track()`, and the same pe
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import itertools
 import json
 import math
@@ -30,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from rack_stress import parse_set  # the same --set overrides (bench/ is on the path as the script's folder)
 
 from companion.daemon.wiring import DAEMON_RACK_TRACKER
 from companion.geometry import frames, se3
@@ -80,18 +80,6 @@ def trajectory(height_m: float, seed: int, wobble: float = 1.0) -> tuple[list[An
         R = frames.rotation_from_euler_zyx(wob[k, 3], wob[k, 4], wob[k, 5])
         poses.append(se3.make(R, np.array([p[0], p[1], -p[2]]) + wob[k, :3]))
     return poses, names
-
-
-def parse_set(items: list[str]) -> dict[str, Any]:
-    fields = {f.name for f in dataclasses.fields(RackTrackerConfig)}
-    out: dict[str, Any] = {}
-    for it in items:
-        key, _, val = it.partition("=")
-        if key not in fields:
-            raise SystemExit(f"--set: unknown RackTrackerConfig field {key!r}")
-        default = getattr(RackTrackerConfig(), key)
-        out[key] = (val.lower() in ("1", "true", "yes")) if isinstance(default, bool) else type(default)(val)
-    return out
 
 
 def main() -> None:

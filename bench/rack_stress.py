@@ -356,7 +356,8 @@ def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:
     return out
 
 
-def _parse_set(items: list[str]) -> dict[str, Any]:
+def parse_set(items: list[str]) -> dict[str, Any]:
+    """`--set name=value` items -> `RackTrackerConfig` overrides, each value of its field's type."""
     fields = {f.name: f for f in dataclasses.fields(RackTrackerConfig)}
     out: dict[str, Any] = {}
     for it in items:
@@ -392,7 +393,7 @@ def main() -> None:
         if c not in CELLS:
             raise SystemExit(f"--cells: unknown cell {c!r}")
     rows = [r.strip() for r in args.rows.split(",") if r.strip()]
-    overrides = _parse_set(args.set)
+    overrides = parse_set(args.set)
     cache = None if args.no_cache else Path(args.cache_dir)
     if args.throughput:
         print(json.dumps({"benchmark": "rack_stress", "throughput": throughput(overrides, cache),

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -161,6 +162,21 @@ class Rig:
     def received(self, msg_type: str, since_s: float | None = None) -> list[Any]:
         msgs = self.ap.received_of(msg_type)
         return [m for m in msgs if since_s is None or m.time_s >= since_s]
+
+    def statustexts(self, since_s: float | None = None) -> list[str]:
+        """The STATUSTEXTs the autopilot received (since `since_s`), chunks (same non-zero id) joined in order."""
+        texts: dict[int, str] = {}
+        for k, m in enumerate(self.received("STATUSTEXT", since_s)):
+            key = int(m.fields.get("id", 0)) or -1 - k
+            texts[key] = texts.get(key, "") + str(m.fields["text"])
+        return list(texts.values())
+
+    def logged(self, event: str) -> list[dict[str, Any]]:
+        """The daemon's flight-log records of `event` (the log flushed first)."""
+        assert self.daemon.flight is not None
+        self.daemon.flight.flush()
+        lines = (self.daemon.flight.path / "log.jsonl").read_text(encoding="utf-8").splitlines()
+        return [rec for rec in map(json.loads, lines) if rec["event"] == event]
 
     def modes_commanded(self, since_s: float | None = None) -> list[float]:
         """param2 of every MAV_CMD_DO_SET_MODE (176) the autopilot received (custom mode numbers)."""

@@ -8,7 +8,6 @@ test_daemon_acquisition)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -39,23 +38,6 @@ async def _acquired_on_the_deck(r: Rig) -> float:
     return _north_error_m(r)
 
 
-def _texts(r: Rig, since_s: float) -> list[str]:
-    """The STATUSTEXTs received since `since_s`, chunks (same non-zero id) joined in order."""
-    texts: dict[int, str] = {}
-    for k, m in enumerate(r.received("STATUSTEXT", since_s)):
-        key = int(m.fields.get("id", 0)) or -1 - k
-        texts[key] = texts.get(key, "") + str(m.fields["text"])
-    return list(texts.values())
-
-
-def _logged(r: Rig, event: str) -> list[dict[str, Any]]:
-    """The flight log's records of `event`."""
-    assert r.daemon.flight is not None
-    r.daemon.flight.flush()
-    lines = (r.daemon.flight.path / "log.jsonl").read_text(encoding="utf-8").splitlines()
-    return [rec for rec in map(json.loads, lines) if rec["event"] == event]
-
-
 def _max_horizontal_speed_m_s(msgs: list[Any]) -> float:
     return max((float(np.hypot(m.fields["vx"], m.fields["vy"])) for m in msgs), default=0.0)
 
@@ -68,13 +50,13 @@ async def test_the_search_leg_finds_the_rack_end_before_the_first_waypoint(tmp_p
         assert abs(err_deck) > 0.8  # the start's y was kept: nothing on the deck observes it
         t0 = r.clock.now()
         await r.start_mission(mission(SERVO, name="servo"))
-        t_search = await r.advance_until(lambda: any("looking for the rack's end" in t for t in _texts(r, t0)),
+        t_search = await r.advance_until(lambda: any("looking for the rack's end" in t for t in r.statustexts(t0)),
                                          max_s=40.0)
         err_search = _north_error_m(r)
         status = r.daemon.status()
         assert status["estimator"]["along_pipe_from_start"] is True
         assert status["mission"]["along_pipe_search"]["state"] == "searching"
-        t_found = await r.advance_until(lambda: any("rack end in view after" in t for t in _texts(r, t0)),
+        t_found = await r.advance_until(lambda: any("rack end in view after" in t for t in r.statustexts(t0)),
                                         max_s=30.0)
         leg = r.received("SET_POSITION_TARGET_LOCAL_NED", t_search)
         leg = [m for m in leg if m.time_s <= t_found]
@@ -97,7 +79,7 @@ async def test_the_search_leg_finds_the_rack_end_before_the_first_waypoint(tmp_p
         assert _max_horizontal_speed_m_s(leg) <= 0.2 + 1e-6  # mission.along_pipe_search_speed_m_s
         assert waypoint_m < 0.10
         assert [a.result for a in ex.results] == ["succeeded"] * 3
-        assert [rec["state"] for rec in _logged(r, "along-pipe-search")] == ["searching", "found"]
+        assert [rec["state"] for rec in r.logged("along-pipe-search")] == ["searching", "found"]
         assert any(m.fields["name"] == "YSEARCH_M" for m in r.received("NAMED_VALUE_FLOAT", t_search))
 
 
@@ -111,7 +93,7 @@ async def test_the_search_holds_and_pauses_when_the_end_is_not_in_view(tmp_path:
         await r.start_mission(mission(SERVO, name="servo"))
         ex = r.daemon.executor
         assert ex is not None
-        t_fail = await r.advance_until(lambda: any("not in view at the end" in t for t in _texts(r, t0)),
+        t_fail = await r.advance_until(lambda: any("not in view at the end" in t for t in r.statustexts(t0)),
                                        max_s=60.0)
         await r.advance(1.0)
         held = r.ap.truth.T_ned_body[:3, 3].copy()
@@ -119,7 +101,7 @@ async def test_the_search_holds_and_pauses_when_the_end_is_not_in_view(tmp_path:
         drift_m = float(np.linalg.norm(r.ap.truth.T_ned_body[:3, 3] - held))
         link = r.daemon.link
         assert link is not None
-        texts = _texts(r, t0)
+        texts = r.statustexts(t0)
         print(f"failed {t_fail - t0:.1f} s after the mission start: {[t for t in texts if 'rack end' in t]}; "
               f"mode {link.state.mode}, moved {100 * drift_m:.1f} cm in the 5 s after; along-pipe error still "
               f"{100 * _north_error_m(r):+.1f} cm")
@@ -129,10 +111,10 @@ async def test_the_search_holds_and_pauses_when_the_end_is_not_in_view(tmp_path:
         assert any("holding, mission paused" in t for t in texts)
         assert all(a.action_id != "p3" for a in ex.results)  # the waypoint was never flown
         assert abs(_north_error_m(r)) > 0.8  # nothing observed y: it was right not to fly on
-        assert [rec["state"] for rec in _logged(r, "along-pipe-search")] == ["searching", "failed"]
+        assert [rec["state"] for rec in r.logged("along-pipe-search")] == ["searching", "failed"]
         # the operator's resume: fly on with the start's along-pipe position (the waypoint is off by its error)
         t_resume = r.clock.now()
         r.daemon.resume_mission()
         await r.advance_until(lambda: ex.state is State.COMPLETED, max_s=60.0)
-        assert any("operator resumed: flying on" in t for t in _texts(r, t_resume))
-        assert [rec["state"] for rec in _logged(r, "along-pipe-search")] == ["searching", "failed", "overridden"]
+        assert any("operator resumed: flying on" in t for t in r.statustexts(t_resume))
+        assert [rec["state"] for rec in r.logged("along-pipe-search")] == ["searching", "failed", "overridden"]

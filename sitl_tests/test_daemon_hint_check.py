@@ -9,9 +9,7 @@ poses are withheld (no arming). Asserted on what the fake autopilot received and
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -20,23 +18,6 @@ from sitl_tests.daemon_harness import Rig, mission, rig
 
 CAMERA_360 = {"camera": {"width": 360, "height": 240}}
 SEED3_START = (0.9, 0.38, np.radians(-1.5))  # north m, east m, yaw rad; the daemon is handed NED (0, 0, 0)
-
-
-def _texts(r: Rig) -> list[str]:
-    """The STATUSTEXTs received, chunks (same non-zero id) joined in order."""
-    texts: dict[int, str] = {}
-    for k, m in enumerate(r.received("STATUSTEXT")):
-        key = int(m.fields.get("id", 0)) or -1 - k
-        texts[key] = texts.get(key, "") + str(m.fields["text"])
-    return list(texts.values())
-
-
-def _logged(r: Rig, event: str) -> list[dict[str, Any]]:
-    """The flight log's records of `event`."""
-    assert r.daemon.flight is not None
-    r.daemon.flight.flush()
-    lines = (r.daemon.flight.path / "log.jsonl").read_text(encoding="utf-8").splitlines()
-    return [rec for rec in map(json.loads, lines) if rec["event"] == event]
 
 
 def _pose_errors(r: Rig) -> np.ndarray:
@@ -54,14 +35,14 @@ async def test_a_hint_lock_one_pipe_off_is_re_acquired_before_any_pose_is_sent(t
     async with rig(tmp_path, overrides=CAMERA_360, start=SEED3_START, start_hint=lambda _: np.eye(4),
                    start_flight=False) as r:
         await r.advance_until(lambda: r.daemon.counters.poses_sent >= 30 and r.ap.ekf_healthy, max_s=30.0)
-        checks = _logged(r, "rack-hint-check")
+        checks = r.logged("rack-hint-check")
         print("checks:", [(c["outcome"], c["dx_m"], c["dz_m"], c["dyaw_deg"]) for c in checks])
         # the hint lock was one pipe off across the pipes (pipe 3 for pipe 4, 0.43 m) and 8 cm high, twice
         assert [c["outcome"] for c in checks] == ["disagrees", "re-acquire"]
         assert all(0.35 < abs(c["dx_m"]) < 0.55 for c in checks)
-        texts = _texts(r)
+        texts = r.statustexts()
         assert any("hint lock one pipe off: re-acquired" in t for t in texts)
-        assert any(rec.get("reason") == "hint lock one pipe off: re-acquired" for rec in _logged(r, "rack-acquired"))
+        assert any(rec.get("reason") == "hint lock one pipe off: re-acquired" for rec in r.logged("rack-acquired"))
         assert r.daemon.status()["estimator"]["rack_lock"] == "re-acquired"
         err = _pose_errors(r)
         print(f"{len(err)} poses sent; worst across {100 * np.abs(err[:, 0]).max():.1f} cm, height "
@@ -83,18 +64,18 @@ async def test_a_hint_lock_one_pipe_off_is_re_acquired_before_any_pose_is_sent(t
         height_m = -float(r.ap.truth.T_ned_body[2, 3])
         print(f"in flight (height {height_m:.2f} m): worst across {100 * np.abs(across_m).max():.1f} cm")
         assert height_m > 1.2 and np.abs(across_m).max() < 0.05
-        assert len(_logged(r, "rack-hint-check")) == len(checks)  # no checks once settled
+        assert len(r.logged("rack-hint-check")) == len(checks)  # no checks once settled
 
 
 async def test_a_start_at_the_hint_is_verified_once_and_flies_as_before(tmp_path: Path) -> None:
     async with rig(tmp_path, overrides=CAMERA_360, start_hint=lambda _: np.eye(4), start_flight=False) as r:
         await r.advance_until(lambda: r.daemon.counters.poses_sent >= 30 and r.ap.ekf_healthy, max_s=30.0)
-        checks = _logged(r, "rack-hint-check")
+        checks = r.logged("rack-hint-check")
         print("checks:", [(c["outcome"], c["dx_m"], c["dz_m"], c["dyaw_deg"]) for c in checks])
         assert [c["outcome"] for c in checks] == ["agrees"]
         assert abs(checks[0]["dx_m"]) < 0.02 and abs(checks[0]["dz_m"]) < 0.02
-        assert not _logged(r, "rack-acquired")
-        assert any("rack lock from the start verified" in t for t in _texts(r))
+        assert not r.logged("rack-acquired")
+        assert any("rack lock from the start verified" in t for t in r.statustexts())
         status = r.daemon.status()["estimator"]
         assert status["rack_lock"] == "verified" and status["along_pipe_from_start"] is False
         resets = {int(m.fields["reset_counter"]) for m in r.received("VISION_POSITION_ESTIMATE")}
@@ -102,7 +83,7 @@ async def test_a_start_at_the_hint_is_verified_once_and_flies_as_before(tmp_path
         err = _pose_errors(r)
         assert np.abs(err[:, :2]).max() < 0.02 and np.abs(err[:, 3]).max() < 0.02
         await r.advance(5.0)
-        assert len(_logged(r, "rack-hint-check")) == 1
+        assert len(r.logged("rack-hint-check")) == 1
 
 
 async def test_over_the_outer_pipe_the_unverified_lock_sends_no_pose(tmp_path: Path) -> None:
@@ -110,12 +91,12 @@ async def test_over_the_outer_pipe_the_unverified_lock_sends_no_pose(tmp_path: P
     # can be confident; the hint is exact here, yet unverified it is not trusted
     async with rig(tmp_path, overrides=CAMERA_360, start=(0.0, 0.85, 0.0), start_flight=False) as r:
         await r.advance(10.0)
-        checks = _logged(r, "rack-hint-check")
+        checks = r.logged("rack-hint-check")
         assert checks and all(c["outcome"] == "no-confident-pose" for c in checks)
         assert len(checks) <= 10.0 * 10 / 8 + 1  # one attempt every 8 frames (10 fps), not every frame
         assert r.daemon.counters.poses_sent == 0 and not r.ap.ekf_healthy
         assert r.daemon.status()["estimator"]["rack_lock"] == "unverified"
-        assert any("rack poses withheld, no arming" in t for t in _texts(r))
+        assert any("rack poses withheld, no arming" in t for t in r.statustexts())
 
 
 async def test_report_mode_sends_the_unverified_lock_and_says_so(tmp_path: Path) -> None:
@@ -123,4 +104,4 @@ async def test_report_mode_sends_the_unverified_lock_and_says_so(tmp_path: Path)
     async with rig(tmp_path, overrides=overrides, start=(0.0, 0.85, 0.0), start_flight=False) as r:
         await r.advance_until(lambda: r.daemon.counters.poses_sent >= 30, max_s=30.0)
         assert r.daemon.status()["estimator"]["rack_lock"] == "unverified"
-        assert any("rack poses sent unverified" in t for t in _texts(r))
+        assert any("rack poses sent unverified" in t for t in r.statustexts())

@@ -7,7 +7,6 @@ param1 = 1) and on its true state.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import aiohttp
@@ -31,22 +30,6 @@ def arm_commands(r: Rig) -> list[float]:
             if int(m.fields["command"]) == ARM_DISARM and float(m.fields["param1"]) == 1.0]
 
 
-def statustexts(r: Rig) -> list[str]:
-    """The STATUSTEXTs the autopilot received, chunks (same non-zero id) joined in order."""
-    texts: dict[int, str] = {}
-    for k, m in enumerate(r.received("STATUSTEXT")):
-        key = int(m.fields.get("id", 0)) or -1 - k
-        texts[key] = texts.get(key, "") + str(m.fields["text"])
-    return list(texts.values())
-
-
-def logged(r: Rig, event: str) -> list[dict[str, object]]:
-    assert r.daemon.flight is not None
-    r.daemon.flight.flush()
-    lines = (r.daemon.flight.path / "log.jsonl").read_text(encoding="utf-8").splitlines()
-    return [rec for rec in map(json.loads, lines) if rec["event"] == event]
-
-
 async def test_battery_critical_before_start_refuses_the_mission_and_never_arms(tmp_path: Path) -> None:
     async with rig(tmp_path) as r:
         r.schedule("battery-critical", in_s=0.0)
@@ -60,8 +43,8 @@ async def test_battery_critical_before_start_refuses_the_mission_and_never_arms(
         status = r.daemon.status()["mission"]
         assert status["state"] == "refused" and "battery" in status["refused"]
         assert arm_commands(r) == [] and not r.ap.armed and r.ap.truth.height_m < 0.05
-        assert any("mission refused" in t and "battery" in t for t in statustexts(r))
-        assert logged(r, "mission-refused")
+        assert any("mission refused" in t and "battery" in t for t in r.statustexts())
+        assert r.logged("mission-refused")
 
 
 async def test_stale_vision_refuses_the_start(tmp_path: Path) -> None:
