@@ -121,9 +121,10 @@ def _pose_from_section(x_m: float, z_m: float, alpha_rad: float, sign: int, limb
 
 
 def _explained(dirs: list[_Direction], poses: list[tuple[int, FloatArray, int]], x_axes: FloatArray,
-               radii: FloatArray, cfg: AcquisitionConfig) -> list[float]:
+               radii: FloatArray, cfg: AcquisitionConfig, footprint: bool = False) -> list[float]:
     """Share of its direction's profile peaks that each pose's limbs explain; `poses` (direction index,
-    T_rack_cam, sign), scored one direction at a time."""
+    T_rack_cam, sign), scored one direction at a time. With `footprint`, of the peaks over each pose's
+    footprint only (`profile_scores`' `footprint_pitches`, `cfg.footprint_pitches`)."""
     tol = max(round(cfg.sweep_tol_px / cfg.profile_bin_px), 1)
     out = [0.0] * len(poses)
     for k in sorted({p[0] for p in poses}):
@@ -135,7 +136,8 @@ def _explained(dirs: list[_Direction], poses: list[tuple[int, FloatArray, int]],
         alpha = np.array([np.arctan2(-(ui @ di.limbs.e_x), ui @ di.limbs.e_z) for ui in u])
         _, ex = profile_scores(di.profile, T[:, 0, 3].copy(), T[:, 2, 3].copy(),
                                np.array([float(poses[i][2]) for i in sel]), x_axes, radii, di.theta_range,
-                               di.visible_length, tol, cfg.min_limb_px, alpha)
+                               di.visible_length, tol, cfg.min_limb_px, alpha,
+                               cfg.footprint_pitches if footprint else None)
         for i, e in zip(sel, ex, strict=True):
             out[i] = float(e)
     return out
@@ -218,7 +220,7 @@ def acquire_rack(
     checked.sort(key=lambda sc: -sc[0])
     # Polish the contenders: the lateral position and the roll about the pipes are nearly
     # interchangeable from high above, and converge slowly under the per-iteration damping.
-    polished: list[tuple[float, int, EdgeCheck]] = [(score, sign, chk) for score, sign, chk, _ in checked]
+    polished: list[tuple[float, int, EdgeCheck, int]] = list(checked)
     todo = [i for i, (score, _, _, _) in enumerate(checked) if score >= cfg.ambiguity_ratio * checked[0][0] * 0.9]
     for extra in (False, True):  # checked with the crossing pipe placed or not
         group = [i for i in todo if (checked[i][2].pipe_samples.size > n_par) == extra]
@@ -230,17 +232,17 @@ def acquire_rack(
         ok = [(i, chk2) for i, chk2 in zip(group, chk2s, strict=True) if credible(chk2, cfg, prior, up_cam, n_par)]
         ex2 = _explained(dirs, [(checked[i][3], chk2.T_rack_cam, checked[i][1]) for i, chk2 in ok], x_axes, radii, cfg)
         for (i, chk2), e in zip(ok, ex2, strict=True):
-            polished[i] = (chk2.agree_fraction * e, checked[i][1], chk2)
+            polished[i] = (chk2.agree_fraction * e, checked[i][1], chk2, checked[i][3])
     polished.sort(key=lambda sc: -sc[0])
     if polished and good_pipes(polished[0][2], cfg).size < cfg.min_pipes:
         # Close range: a pose off by one pipe explains fewer limbs (a neighbour's limb where it puts the
         # rack's side, or none where it puts a neighbour) rather than failing outright; the poses that
         # explain the most limbs are the hypotheses.
-        n_ok = [num_limbs_ok(chk, cfg, n_par) for _, _, chk in polished]
+        n_ok = [num_limbs_ok(chk, cfg, n_par) for _, _, chk, _ in polished]
         polished = [p for p, n in zip(polished, n_ok, strict=True) if n == max(n_ok)]
     # y from a crossing pipe for the best only: the others are kept as alternatives to report.
     out = [_finish(sign, chk, score, seg, img_f, camera, pipes_all, n_par, prior, cfg, damping, up_cam, up_weight,
-                   k == 0) for k, (score, sign, chk) in enumerate(polished)]
+                   k == 0) for k, (score, sign, chk, _) in enumerate(polished)]
     out = distinct(out, cfg)
     if not out:
         return AcquisitionResult((), False, "no hypothesis agrees with the image edges", int(seg.length_px.size),
@@ -249,7 +251,15 @@ def acquire_rack(
     # At close range a pose off by a pipe explains fewer limbs (a missing neighbour) rather than
     # failing outright; it counts as a rival only when it explains as many limbs as the best.
     rival_limbs = num_limbs_ok(best_chk, cfg, n_par) if good_pipes(best_chk, cfg).size < cfg.min_pipes else 0
-    status = decide(out, rivals, prior, cfg, up_cam, rival_limbs)
+    # Whether the image is explained: the whole image's lines, or those over the rack's footprint
+    # (ground clutter beside the rack is not evidence against the pose); the ranking and the ambiguity
+    # tests keep the whole image's (`_explained`), which is what tells a pose one or more pipes off.
+    # A best rescued that way must also stand out among the contenders on that score.
+    shown = [chk.agree_fraction * e for (_, _, chk, _), e in zip(polished, _explained(
+        dirs, [(d, chk.T_rack_cam, sign) for _, sign, chk, d in polished], x_axes, radii, cfg, footprint=True),
+        strict=True)]
+    status = decide(out, rivals, prior, cfg, up_cam, rival_limbs,
+                    shown[0] if all(v <= cfg.ambiguity_ratio * shown[0] for v in shown[1:]) else out[0].score)
     return AcquisitionResult(tuple(out), status == "", status, int(seg.length_px.size), num_limbs)
 
 

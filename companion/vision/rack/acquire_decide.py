@@ -24,15 +24,17 @@ __all__ = ["close_range", "credible", "decide", "distinct", "flanked_pipes", "go
 
 
 def decide(out: list[RackHypothesis], rivals: list[tuple[float, int, FloatArray, int]], prior: AcquisitionPrior,
-            cfg: AcquisitionConfig, up_cam: FloatArray, rival_limbs: int) -> str:
+            cfg: AcquisitionConfig, up_cam: FloatArray, rival_limbs: int, shown_score: float | None = None) -> str:
     """The empty string when the best of `out` (ranked, distinct) deserves confidence, else why not.
     Rejected poses (score, sign, pose, agreeing limbs) count as rivals when they agree on at least
-    `rival_limbs` limbs (0 = all of them) at a height the autopilot allows (`height_gate_sigma`)."""
+    `rival_limbs` limbs (0 = all of them) at a height the autopilot allows (`height_gate_sigma`).
+    `shown_score`: the best's score for the `min_score` floor (default its `score`)."""
     status = ""
     best = out[0].T_rack_cam
     tilt = float(np.arccos(np.clip(best[2, :3] @ up_cam, -1.0, 1.0)))
-    if out[0].score < cfg.min_score:
-        status = f"best score {out[0].score:.2f} below {cfg.min_score:.2f}: the image is not explained"
+    floor_score = out[0].score if shown_score is None else max(shown_score, out[0].score)
+    if floor_score < cfg.min_score:
+        status = f"best score {floor_score:.2f} below {cfg.min_score:.2f}: the image is not explained"
     elif abs(best[2, 3] - prior.height_m) > cfg.confident_sigma * prior.height_std_m \
             or tilt > cfg.confident_sigma * cfg.attitude_std_rad:
         # Credible but in the tails of the autopilot's height or tilt: where the lateral / roll

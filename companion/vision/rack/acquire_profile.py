@@ -48,7 +48,8 @@ def _pixel_rays(camera: PinholeCamera, width: int, height: int) -> FloatArray:
 class PencilProfile:
     """Mean cross-line gradient (grey levels per px) `value` (B,) in angle bins starting at
     `theta0` (rad) of width `bin_rad`; `peak_theta` (P,) / `peak_value` (P,) its local maxima above
-    half the reference level `ref` (the 99th percentile of the profile)."""
+    half the reference level `ref` (the 99th percentile of the profile); `floor` its median (gravel,
+    speckle or a grating raise the whole profile)."""
 
     theta0: float
     bin_rad: float
@@ -56,6 +57,7 @@ class PencilProfile:
     ref: float
     peak_theta: FloatArray
     peak_value: FloatArray
+    floor: float = 0.0
     _dilated: dict[int, FloatArray] = field(default_factory=dict, compare=False, repr=False)
 
     def at(self, theta: FloatArray, tol_bins: int) -> FloatArray:
@@ -117,11 +119,13 @@ def pencil_profile(small: GrayImage, camera: PinholeCamera, limbs: LimbClusters,
     value = np.where(cnt >= 0.25 * min(h, w), tot / np.maximum(cnt, 1.0), 0.0)
     value = np.asarray(np.convolve(value, np.array([0.25, 0.5, 0.25]), mode="same"))
     ref = percentile(value[value > 0], 99) if np.any(value > 0) else 0.0
+    floor = percentile(value[value > 0], 50) if np.any(value > 0) else 0.0
     is_peak = np.zeros(n_bins, dtype=bool)
     is_peak[1:-1] = (value[1:-1] >= value[:-2]) & (value[1:-1] > value[2:]) & (value[1:-1] >= 0.5 * ref)
     pk = np.flatnonzero(is_peak)
     return PencilProfile(theta0=theta0, bin_rad=bin_rad, value=value, ref=max(ref, 1e-9),
-                         peak_theta=np.asarray(theta0 + (pk + 0.5) * bin_rad, dtype=np.float64), peak_value=value[pk])
+                         peak_theta=np.asarray(theta0 + (pk + 0.5) * bin_rad, dtype=np.float64), peak_value=value[pk],
+                         floor=floor)
 
 
 @dataclass(frozen=True)
@@ -141,14 +145,21 @@ class SweptHypothesis:
 def profile_scores(
     profile: PencilProfile, X: FloatArray, Z: FloatArray, S: FloatArray, x_axes: FloatArray, radii: FloatArray,
     theta_range: tuple[float, float], visible_length: Any, tol_bins: int, min_length_px: float,
-    alpha: FloatArray | None = None,
+    alpha: FloatArray | None = None, footprint_pitches: float | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Evidence and explained share (C,) of camera positions X, Z (C,) travelling along S (C,) x rack +y,
     rolled by `alpha` (C,) (rad, default 0) about the pipes relative to the profile's basis.
 
     Evidence: the profile under the predicted limbs relative to the reference (capped at 1),
     weighted by their visible length; explained: the share of the profile's peak mass within the
-    tolerance of a predicted limb (peaks nothing predicts count against the position).
+    tolerance of a predicted limb (peaks nothing predicts count against the position). With
+    `footprint_pitches` the share is of the peaks over the rack's footprint only: between the
+    outermost predicted limbs in view, widened on each side by that many mean pipe pitches (in
+    angle). A pose one pipe off leaves a real pipe unexplained within a pitch of its footprint;
+    stripes, kerbs and gravel further out are ground the model says nothing about. Peaks in the
+    middle half of a pipe shown with both limbs (its highlight, its shading) do not count either,
+    and the others count by their height above the profile's floor when at least a quarter of the way from
+    it to the reference (on gravel every bin is a local maximum of the grain).
     """
     th, vis = predict_limb_angles(X, Z, np.zeros(X.size) if alpha is None else alpha, S, x_axes, radii)
     in_view = vis & (th > theta_range[0]) & (th < theta_range[1])
@@ -160,7 +171,29 @@ def profile_scores(
     if profile.peak_theta.size == 0:
         return evidence, np.zeros(X.size)
     claimed = profile.claimed_peaks(th, in_view, (tol_bins + 1) * profile.bin_rad)  # (C, P)
-    explained = (claimed * profile.peak_value[None, :]).sum(axis=1) / profile.peak_value.sum()
+    mass = np.broadcast_to(profile.peak_value[None, :], claimed.shape)
+    if footprint_pitches is not None:
+        # Peaks counted by their height above the clutter floor, those a quarter of the way to the reference.
+        fl = profile.floor
+        above = profile.peak_value - fl
+        mass = np.broadcast_to(np.where(above >= 0.25 * (profile.ref - fl), above, 0.0)[None, :], claimed.shape)
+        use = in_view & (L > 0)
+        lo = np.where(use, th, np.inf).min(axis=1)
+        hi = np.where(use, th, -np.inf).max(axis=1)
+        n_pipes = use.reshape(use.shape[0], -1, 2).any(axis=2).sum(axis=1)
+        pitch = np.where(n_pipes > 1, (hi - lo) / np.maximum(n_pipes - 1, 1), hi - lo)
+        margin = footprint_pitches * np.where(np.isfinite(pitch), pitch, 0.0)
+        pt = profile.peak_theta[None, :]
+        keep = (pt >= (lo - margin)[:, None]) & (pt <= (hi + margin)[:, None])
+        # A pipe's own shading (the highlight, the terminator) lies well inside its silhouette.
+        left, right = th[:, 0::2], th[:, 1::2]
+        quarter = 0.25 * (right - left)
+        shown = use[:, 0::2] & use[:, 1::2]
+        inner = ((pt[:, :, None] > (left + quarter)[:, None, :]) & (pt[:, :, None] < (right - quarter)[:, None, :])
+                 & shown[:, None, :]).any(axis=2)
+        mass = np.where(keep & ~inner, mass, 0.0)
+    total = mass.sum(axis=1)
+    explained = np.where(total > 0, (claimed * mass).sum(axis=1) / np.maximum(total, 1e-12), 0.0)
     return evidence, explained
 
 

@@ -44,8 +44,10 @@ class AcquisitionConfig:
     is within `height_gate_sigma` standard deviations of the measured one and its tilt within
     `tilt_gate_sigma` attitude standard deviations of the autopilot's; hypotheses further
     than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The
-    best is `confident` when its score reaches `min_score` (most of the image's pipe-like lines
-    explained, most of its limbs seen), its height and tilt are within `confident_sigma`
+    best is `confident` when its score reaches `min_score` (most of its limbs seen, and most of the
+    image's pipe-like lines explained, or most of those over the rack's footprint: between its
+    outermost limbs widened by `footprint_pitches` pipe pitches each side, if no other contender
+    comes within `ambiguity_ratio` of it there), its height and tilt are within `confident_sigma`
     standard deviations of the autopilot's, and every other credible hypothesis (another pipe
     assignment or direction, or a pose more than `distinct_m` / `distinct_rad` away) scores at
     most `ambiguity_ratio` times its score, nor does any checked pose that failed credibility
@@ -77,6 +79,7 @@ class AcquisitionConfig:
     check_score_ratio: float = 0.5
     min_agree_fraction: float = 0.5
     min_score: float = 0.35
+    footprint_pitches: float = 1.5
     max_residual_px: float = 1.0
     min_pipes: int = 2
     min_pipe_agree: float = 0.5
