@@ -146,3 +146,17 @@ def test_exp_one_matches_exp() -> None:
     twists.append(np.array([0.2, 0.1, -0.3, np.pi - 1e-6, 0.0, 0.0]))
     for xi in twists:
         assert np.allclose(se3.exp_one(xi), se3.exp(xi), rtol=0.0, atol=1e-15), xi
+
+
+def test_log_one_equals_log_bit_for_bit() -> None:
+    rng = np.random.default_rng(42)
+    transforms = [np.eye(4)]
+    # every quaternion branch and both angle branches: tiny rotations (series), moderate, near and at pi
+    for s in (1e-9, 1e-6, 1e-4, 1e-3, 2e-3, 0.1, 1.0, 3.0):
+        transforms += [se3.exp(np.concatenate([rng.normal(0.0, 1.0, 3), rng.normal(0.0, s, 3)])) for _ in range(200)]
+    for angle in (np.pi, np.pi - 1e-6, 1e-12):
+        for axis in list(np.eye(3)) + [rng.normal(size=3) for _ in range(10)]:
+            w = angle * axis / np.linalg.norm(axis)
+            transforms.append(se3.exp(np.concatenate([rng.normal(size=3), w])))
+    for T in transforms:
+        np.testing.assert_array_equal(se3.log_one(T), se3.log(T))

@@ -7,7 +7,8 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.geometry import se3, so3
 from companion.vision.rack import Pipe, RackModel
-from companion.vision.rack.limbs import sample_limbs
+from companion.vision.rack.limbs import limb_lines, occluded, ray_cylinder_hits, sample_limbs
+from companion.vision.rack.model import PipeArrays
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -82,3 +83,55 @@ def test_camera_inside_or_behind_gives_no_samples() -> None:
     # Looking up at the sky from above the rack: nothing visible.
     T_up = se3.make(np.diag([1.0, 1.0, 1.0]), [0.5, 5.0, 2.5])
     assert sample_limbs(T_up, CAM, model.pipe_arrays(), 10).uv.shape[0] == 0
+
+
+def _dense_hits(o: np.ndarray, d: np.ndarray, pipes: PipeArrays, margin: np.ndarray) -> np.ndarray:
+    """The former dense `ray_cylinder_hits`: both roots of every (ray, pipe) pair (the reference)."""
+    c, v, r, L = pipes.starts, pipes.directions, pipes.radii, pipes.lengths
+    w = o[None, :] - c
+    wv = np.einsum("mi,mi->m", w, v)
+    dv, dw = d @ v.T, d @ w.T
+    A = 1.0 - dv * dv
+    B = dw - dv * wv[None, :]
+    rr = r[None, :] + np.asarray(margin, dtype=np.float64).reshape(-1, 1)
+    C = (np.einsum("mi,mi->m", w, w) - wv * wv)[None, :] - rr * rr
+    disc = B * B - A * C
+    hit = (disc > 0.0) & (A > 1e-12)
+    sq = np.sqrt(np.where(hit, disc, 0.0))
+    As = np.where(hit, A, 1.0)
+    t_out = np.full(A.shape, np.inf)
+    for t in ((-B - sq) / As, (-B + sq) / As):
+        s = wv[None, :] + t * dv
+        np.copyto(t_out, t, where=hit & (t > 0.0) & (s >= 0.0) & (s <= L[None, :]) & (t < t_out))
+    return t_out
+
+
+def test_hits_and_occlusion_equal_the_dense_computation(rng: np.random.Generator) -> None:
+    """Roots only where the line meets a cylinder (and, for occlusion, not on the point's own pipe)
+    give bit for bit the distances and flags of computing them for every pair."""
+    cross = Pipe(radius=0.12, start=(-0.5, 5.0, 0.52), direction=(1.0, 0.0, 0.0), length=2.0)
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.1], length=10.0, extra=[cross])
+    pipes = model.pipe_arrays()
+    for _ in range(20):
+        o = np.array([rng.uniform(-0.5, 1.5), rng.uniform(-1.0, 11.0), rng.uniform(0.2, 3.0)])
+        p = pipes.starts[rng.integers(0, 4, 300)] + rng.uniform(-0.3, 0.3, (300, 3)) + [0.0, 5.0, 0.0]
+        d = p - o
+        dist = np.linalg.norm(d, axis=1)
+        d /= dist[:, None]
+        margin = rng.uniform(0.0, 0.02, 300)
+        np.testing.assert_array_equal(ray_cylinder_hits(o, d, pipes, margin), _dense_hits(o, d, pipes, margin))
+        own = rng.integers(0, 4, 300)
+        t = _dense_hits(o, d, pipes, margin)
+        t[np.arange(300), own] = np.inf
+        np.testing.assert_array_equal(occluded(o, p, own, pipes, margin),
+                                      np.any(t < dist[:, None] * (1.0 - 1e-6), axis=1))
+
+
+def test_given_limb_lines_are_used_as_computed() -> None:
+    model = RackModel.parallel(radii=[0.15, 0.2], gaps=[0.1], length=10.0)
+    pipes = model.pipe_arrays()
+    T = se3.make(so3.exp(np.array([0.1, -0.05, 0.2])) @ R_DOWN, [0.4, 5.0, 2.0])
+    a = sample_limbs(T, CAM, pipes, 16)
+    b = sample_limbs(T, CAM, pipes, 16, lines=limb_lines(T[:3, 3], pipes))
+    for name in ("p_cam", "uv", "normal_px", "J_uv_pcam", "limb", "segments_uv"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

@@ -121,8 +121,14 @@ def search_edges(
         ref = np.asarray(inner_ref, dtype=np.float32)
         has_ref = _pairwise_sum([ref[:, m] * ref[:, m] for m in range(M)]) > 0.25  # = (ref * ref).sum(axis=1)
         ncc = np.einsum("ncm,nm->nc", windows, ref)  # windows is C-contiguous (N, 2R+1, M)
-        fit = np.minimum(np.maximum(0.5 + 0.5 * ncc, np.float32(0.0)), np.float32(1.0))  # np.clip, without its overhead
-        factor = np.where(has_ref[:, None], fit * fit, np.float32(1.0))
+        # fit = clip(0.5 + 0.5 ncc, 0, 1), squared: the same float32 steps done in place on the fresh
+        # (N, 2R+1) array (each step an allocation less; np.clip without its overhead).
+        fit = np.multiply(ncc, np.float32(0.5), out=ncc)
+        fit += np.float32(0.5)
+        np.maximum(fit, np.float32(0.0), out=fit)
+        np.minimum(fit, np.float32(1.0), out=fit)
+        fit *= fit
+        factor = fit if has_ref.all() else np.where(has_ref[:, None], fit, np.float32(1.0))
     offset, found, b, g_b = pick_in_gradients(g, polarity, prior, R, threshold, factor)
     if forward_difference:
         offset = offset + 0.5
@@ -209,7 +215,7 @@ def pick_in_gradients(
     score = np.where(signed >= threshold, signed, 0.0) * prior[None, :]
     if factor is not None:
         score = score * factor
-    best = np.argmax(score, axis=1)
+    best = score.argmax(axis=1)
     width = 2 * R + 1
     row0 = np.arange(n) * width  # flat index of each row's k = -R
     found = np.asarray((score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R))
@@ -297,22 +303,22 @@ def refine_silhouette(
     # Each candidate's |Q_dᵀ P|²: its four columns added left to right (as a sum over a length-4 axis
     # does, bit for bit), as three adds of (N, D) slabs (a reduction over a short axis is slow).
     sse = np.sum(prof * prof, axis=1)[:, None] - (((sq[:, 0::4] + sq[:, 1::4]) + sq[:, 2::4]) + sq[:, 3::4])
-    best = np.argmin(sse, axis=1)
-    b = np.clip(best, 1, _REFINE_DELTAS.size - 2)
+    best = sse.argmin(axis=1)
+    b = np.minimum(np.maximum(best, 1), _REFINE_DELTAS.size - 2)  # np.clip, without its overhead
     rows = np.arange(n)
     s_m, s_0, s_p = sse[rows, b - 1], sse[rows, b], sse[rows, b + 1]
     den = s_m - 2.0 * s_0 + s_p
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(den > 1e-9, 0.5 * (s_m - s_p) / den, 0.0)
-    frac = np.clip(frac, -0.5, 0.5)
+    frac = np.minimum(np.maximum(frac, -0.5), 0.5)
     out = p + _REFINE_DELTAS[b] + frac * _REFINE_STEP_PX
     if max_rel_rms > 0.0:
         # Keep the gradient peak where the limb model does not explain the profile (a grating or a
         # beam next to the limb): its fit there is arbitrary.
         rms = np.sqrt(np.maximum(s_0, 0.0) / max(j.size - 4, 1))
-        hi, lo = prof[:, 0], prof[:, 0]
-        for c in range(1, prof.shape[1]):  # the range per sample column by column (a short-axis reduction is slow)
-            hi, lo = np.maximum(hi, prof[:, c]), np.minimum(lo, prof[:, c])
-        contrast = hi - lo
+        # The range per sample, reduced along the long axis of a transposed copy (a reduction over the
+        # short axis of `prof` is 5x slower); max and min are exact, so the order does not matter.
+        prof_t = prof.T.copy()
+        contrast = prof_t.max(axis=0) - prof_t.min(axis=0)
         out = np.where(rms <= max_rel_rms * np.maximum(contrast, 1e-6), out, offset_px)
     return np.asarray(out)

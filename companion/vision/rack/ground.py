@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.vision.rack.limbs import clip_lines_to_view, limb_lines
+from companion.vision.rack.limbs import LimbLines, clip_lines_to_view, limb_lines
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import pose_jacobian
 
@@ -52,25 +52,35 @@ def ground_rows(
     A = np.zeros((2 * k, 7))
     r = np.zeros((k, 2))
     # Points whose ray misses the plane (NaN) or that are behind the camera give zero rows.
-    p_cam = (np.where(np.isfinite(X), X, 0.0) - T_rack_cam[:3, 3]) @ R
-    ok = np.all(np.isfinite(X), axis=1) & (p_cam[:, 2] > 1e-3)
-    if np.any(ok):
+    fin = np.isfinite(X)
+    p_cam = (np.where(fin, X, 0.0) - T_rack_cam[:3, 3]) @ R
+    ok = fin.all(axis=1) & (p_cam[:, 2] > 1e-3)
+    rows = A.reshape(k, 2, 7)
+    if ok.all():  # the usual case: no selection copies (the same arrays as the selection of all)
+        uv_hat, J = camera.project_with_jacobian(p_cam)
+        rows[:, :, :6] = pose_jacobian(J, p_cam)
+        rows[:, :, 6] = np.einsum("nij,nj->ni", J, dX_dz @ R)
+        r = uv - uv_hat
+    elif ok.any():
         uv_hat, J = camera.project_with_jacobian(p_cam[ok])
-        rows = A.reshape(k, 2, 7)
         rows[ok, :, :6] = pose_jacobian(J, p_cam[ok])
         rows[ok, :, 6] = np.einsum("nij,nj->ni", J, dX_dz[ok] @ R)
         r[ok] = uv[ok] - uv_hat
     return A, r.reshape(-1)
 
 
-def pipe_silhouettes(T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays) -> list[FloatArray]:
+def pipe_silhouettes(
+    T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays, lines: LimbLines | None = None
+) -> list[FloatArray]:
     """Image quadrilaterals (4, 2) (pinhole pixels, not clipped to the image) of every pipe in front of the camera.
 
     Each is bounded by the pipe's two limb lines, clipped to the near plane and to a band of three
     image sizes around the image, so that a pipe entering the view with one limb still outside it
-    (or both: the camera right over a wide pipe) still masks the ground it covers.
+    (or both: the camera right over a wide pipe) still masks the ground it covers. `lines`:
+    `limb_lines(T_rack_cam[:3, 3], pipes)` when the caller has it already.
     """
-    lines = limb_lines(T_rack_cam[:3, 3], pipes)
+    if lines is None:
+        lines = limb_lines(T_rack_cam[:3, 3], pipes)
     R = T_rack_cam[:3, :3]
     A = (lines.point - T_rack_cam[:3, 3]) @ R
     D = lines.direction @ R
@@ -99,8 +109,9 @@ def ground_mask(shape: tuple[int, int], pipe_polygons: list[FloatArray], margin_
     mask[b : h - b, b : w - b] = 255
     grow = max(round(2 * margin_px), 1)
     for poly in pipe_polygons:
-        cv2.fillConvexPoly(mask, np.rint(poly).astype(np.int32), 0)
-        cv2.polylines(mask, [np.rint(poly).astype(np.int32)], True, 0, grow)
+        corners = np.rint(poly).astype(np.int32)
+        cv2.fillConvexPoly(mask, corners, 0)
+        cv2.polylines(mask, [corners], True, 0, grow)
     return mask
 
 

@@ -7,6 +7,7 @@ follow OpenCV (integer coordinates are pixel centres).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,23 +57,20 @@ def limb_lines(o_rack: FloatArray, pipes: PipeArrays) -> LimbLines:
     vxu[:, 1] = v[:, 2] * u[:, 0] - v[:, 0] * u[:, 2]
     vxu[:, 2] = v[:, 0] * u[:, 1] - v[:, 1] * u[:, 0]
     cb, sb = np.cos(beta), np.sin(beta)
-    dir_l = cb[:, None] * u + sb[:, None] * vxu  # R(v, +β) u (u ⟂ v)
-    dir_r = cb[:, None] * u - sb[:, None] * vxu  # R(v, -β) u
-    p_l = o_rack + delta[:, None] * dir_l  # eq. 13
-    p_r = o_rack + delta[:, None] * dir_r  # eq. 14
-    point = np.empty((2 * c.shape[0], 3))
-    point[0::2] = p_l
-    point[1::2] = p_r
-    outward = (point - np.repeat(p_axis, 2, axis=0)) / np.repeat(np.where(valid, r, 1.0), 2)[:, None]
-    s_min = np.repeat(-a, 2)
-    s_max = np.repeat(pipes.lengths - a, 2)
+    # Both sides of each pipe in one (M, 2, 3) array, rows 2 m and 2 m + 1 once flattened.
+    cu, svu = cb[:, None] * u, sb[:, None] * vxu
+    dirs = np.empty((c.shape[0], 2, 3))
+    dirs[:, 0] = cu + svu  # R(v, +β) u (u ⟂ v)
+    dirs[:, 1] = cu - svu  # R(v, -β) u
+    point3 = o_rack + delta[:, None, None] * dirs  # eq. 13, 14
+    outward = (point3 - p_axis[:, None, :]) / np.where(valid, r, 1.0)[:, None, None]
     return LimbLines(
-        point=point,
-        direction=np.repeat(v, 2, axis=0),
-        outward=outward,
-        s_min=s_min,
-        s_max=s_max,
-        valid=np.repeat(valid, 2),
+        point=point3.reshape(-1, 3),
+        direction=v.repeat(2, axis=0),
+        outward=outward.reshape(-1, 3),
+        s_min=(-a).repeat(2),
+        s_max=(pipes.lengths - a).repeat(2),
+        valid=valid.repeat(2),
     )
 
 
@@ -100,35 +98,33 @@ def clip_lines_to_view(
     ab = np.empty((2 * n, 5))
     ab[:, 0] = Z
     ab[:n, 0] -= z_near_m
-    ab[:, 1] = fx * X + sk * Y + (cx - m) * Z
-    ab[:, 2] = -(fx * X + sk * Y + (cx - umax) * Z)
-    ab[:, 3] = fy * Y + (cy - m) * Z
-    ab[:, 4] = -(fy * Y + (cy - vmax) * Z)
+    u_lin = fx * X + sk * Y
+    v_lin = fy * Y
+    ab[:, 1] = u_lin + (cx - m) * Z
+    ab[:, 2] = -(u_lin + (cx - umax) * Z)
+    ab[:, 3] = v_lin + (cy - m) * Z
+    ab[:, 4] = -(v_lin + (cy - vmax) * Z)
     a_c, b_c = ab[:n], ab[n:]
     with np.errstate(divide="ignore", invalid="ignore"):
         root = -a_c / b_c
     pos = b_c > 1e-12
     neg = b_c < -1e-12
-    flat_bad = (~pos) & (~neg) & (a_c < 0.0)
-    lo = np.max(np.where(pos, root, -np.inf), axis=1)
-    hi = np.min(np.where(neg, root, np.inf), axis=1)
+    flat_bad = ~(pos | neg) & (a_c < 0.0)
+    lo = np.where(pos, root, -np.inf).max(axis=1)
+    hi = np.where(neg, root, np.inf).min(axis=1)
     s0 = np.maximum(s_min, lo)
     s1 = np.minimum(s_max, hi)
-    bad = np.any(flat_bad, axis=1)
+    bad = flat_bad.any(axis=1)
     s1 = np.where(bad, s0 - 1.0, s1)
     return s0, s1
 
 
-def ray_cylinder_hits(
-    o_rack: FloatArray, d_rack: FloatArray, pipes: PipeArrays, radius_margin_m: Any = 0.0
-) -> FloatArray:
-    """Distance t (N, M) along unit rays o + t d (N, 3) to the first hit of each finite pipe; inf if none.
-
-    `radius_margin_m` (scalar or (N,)) inflates every radius (used to keep samples away from
-    occluding silhouettes). Both roots are tried so a ray entering through the pipe's open end
-    still counts when it meets the wall inside the length.
-    """
-    c, v, r, L = pipes.starts, pipes.directions, pipes.radii, pipes.lengths
+def _ray_cylinder_terms(
+    o_rack: FloatArray, d_rack: FloatArray, pipes: PipeArrays, radius_margin_m: Any
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
+    """Per ray and pipe (N, M): A, half B, the discriminant, d.v, and (M,) w.v of `ray_cylinder_hits`'
+    quadratic A t^2 + 2 B t + C = 0, and where it has two roots (the only pairs that can hit)."""
+    c, v, r = pipes.starts, pipes.directions, pipes.radii
     w = o_rack[None, :] - c  # (M, 3)
     wv = np.einsum("mi,mi->m", w, v)  # (M,)
     dv = d_rack @ v.T  # (N, M)
@@ -140,14 +136,40 @@ def ray_cylinder_hits(
     C = w_perp2[None, :] - rr * rr
     disc = B * B - A * C
     hit = (disc > 0.0) & (A > 1e-12)
-    sq = np.sqrt(np.where(hit, disc, 0.0))
-    As = np.where(hit, A, 1.0)
-    # The near root (-B - sq) / A <= the far one: the far root only counts where the near one fails.
-    t_out: FloatArray = np.full(A.shape, np.inf)
-    for t in ((-B - sq) / As, (-B + sq) / As):
-        s = wv[None, :] + t * dv
-        ok = hit & (t > 0.0) & (s >= 0.0) & (s <= L[None, :]) & (t < t_out)
+    return A, B, disc, dv, wv, hit
+
+
+def _first_hits(
+    A: FloatArray, B: FloatArray, disc: FloatArray, dv: FloatArray, wv: FloatArray, length: FloatArray
+) -> FloatArray:
+    """Distance to the first hit within the pipe's length (inf if none) of selected (ray, pipe) pairs
+    (1-D, all with two roots): the near root (-B - sq) / A unless it fails, then the far one."""
+    sq = np.sqrt(disc)
+    t_out = np.full(A.shape, np.inf)
+    for t in ((-B - sq) / A, (-B + sq) / A):
+        s = wv + t * dv
+        ok = (t > 0.0) & (s >= 0.0) & (s <= length) & (t < t_out)
         np.copyto(t_out, t, where=ok)
+    return t_out
+
+
+def ray_cylinder_hits(
+    o_rack: FloatArray, d_rack: FloatArray, pipes: PipeArrays, radius_margin_m: Any = 0.0
+) -> FloatArray:
+    """Distance t (N, M) along unit rays o + t d (N, 3) to the first hit of each finite pipe; inf if none.
+
+    `radius_margin_m` (scalar or (N,)) inflates every radius (used to keep samples away from
+    occluding silhouettes). Both roots are tried so a ray entering through the pipe's open end
+    still counts when it meets the wall inside the length.
+    """
+    A, B, disc, dv, wv, hit = _ray_cylinder_terms(o_rack, d_rack, pipes, radius_margin_m)
+    t_out: FloatArray = np.full(A.shape, np.inf)
+    # Roots only for the pairs whose line meets the (inflated) cylinder: mostly each ray's own pipe (a sixth
+    # of the pairs on the paper's rack), the same values as computing them everywhere (test).
+    sel = np.flatnonzero(hit)
+    m = sel % A.shape[1]
+    t_out.ravel()[sel] = _first_hits(A.ravel()[sel], B.ravel()[sel], disc.ravel()[sel], dv.ravel()[sel], wv[m],
+                                     pipes.lengths[m])
     return t_out
 
 
@@ -162,9 +184,17 @@ def occluded(
     d = p_rack - o_rack[None, :]
     dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
     d = d / np.maximum(dist, 1e-12)[:, None]
-    t = ray_cylinder_hits(o_rack, d, pipes, margin_m)
-    t[np.arange(p_rack.shape[0]), own_pipe] = np.inf
-    return np.asarray(np.any(t < dist[:, None] * (1.0 - 1e-6), axis=1))
+    A, B, disc, dv, wv, hit = _ray_cylinder_terms(o_rack, d, pipes, margin_m)
+    n, n_pipes = A.shape
+    hit[np.arange(n), own_pipe] = False  # a point's own pipe does not hide it
+    out = np.zeros(n, dtype=bool)
+    sel = np.flatnonzero(hit)
+    if sel.size:
+        # `ray_cylinder_hits`' distances of the pairs that can hit (the same arithmetic), against the point's.
+        row, m = sel // n_pipes, sel % n_pipes
+        t = _first_hits(A.ravel()[sel], B.ravel()[sel], disc.ravel()[sel], dv.ravel()[sel], wv[m], pipes.lengths[m])
+        out[row[t < dist[row] * (1.0 - 1e-6)]] = True
+    return out
 
 
 @dataclass(frozen=True)
@@ -188,6 +218,16 @@ class LimbSamples:
     segment_limb: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
 
 
+@functools.lru_cache(maxsize=8)
+def _image_uniform(K: int) -> tuple[FloatArray, FloatArray]:
+    """Read-only sample parameters t = (k + 0.5) / K (1, K) along a limb's image and 1 - t."""
+    t = ((np.arange(K) + 0.5) / K)[None, :]
+    one_minus_t = 1.0 - t
+    t.flags.writeable = False
+    one_minus_t.flags.writeable = False
+    return t, one_minus_t
+
+
 def sample_limbs(
     T_rack_cam: FloatArray,
     camera: PinholeCamera,
@@ -197,11 +237,16 @@ def sample_limbs(
     min_length_px: float = 12.0,
     z_near_m: float = 0.1,
     occlusion_margin_px: float = 3.0,
+    lines: LimbLines | None = None,
 ) -> LimbSamples:
-    """Sample every visible limb at `samples_per_limb` image-uniform points; drop occluded samples."""
+    """Sample every visible limb at `samples_per_limb` image-uniform points; drop occluded samples.
+
+    `lines`: `limb_lines(T_rack_cam[:3, 3], pipes)` when the caller has it already.
+    """
     R_rc = T_rack_cam[:3, :3]
     o = T_rack_cam[:3, 3]
-    lines = limb_lines(o, pipes)
+    if lines is None:
+        lines = limb_lines(o, pipes)
     R_cr = R_rc.T
     A_cam = (lines.point - o) @ R_rc  # R_cam_rack (p - o)
     D_cam = lines.direction @ R_rc
@@ -210,29 +255,30 @@ def sample_limbs(
     idx = np.flatnonzero(keep)
     if idx.size == 0:
         return _empty_samples()
-    Pa = A_cam[idx] + s0[idx, None] * D_cam[idx]
-    Pb = A_cam[idx] + s1[idx, None] * D_cam[idx]
+    # Both clipped ends of each line at once (L, 2, 3): row 0 at s0, row 1 at s1.
+    s01 = np.empty((idx.size, 2))
+    s01[:, 0] = s0[idx]
+    s01[:, 1] = s1[idx]
+    P = A_cam[idx][:, None, :] + s01[:, :, None] * D_cam[idx][:, None, :]
     # Image length of each clipped line (pinhole part) to drop tiny ones.
-    ua = Pa[:, :2] / Pa[:, 2:3]
-    ub = Pb[:, :2] / Pb[:, 2:3]
-    len_px = np.hypot((ub[:, 0] - ua[:, 0]) * camera.fx, (ub[:, 1] - ua[:, 1]) * camera.fy)
+    U = P[:, :, :2] / P[:, :, 2:3]
+    len_px = np.hypot((U[:, 1, 0] - U[:, 0, 0]) * camera.fx, (U[:, 1, 1] - U[:, 0, 1]) * camera.fy)
     long_enough = len_px >= min_length_px
-    idx, Pa, Pb = idx[long_enough], Pa[long_enough], Pb[long_enough]
-    ua, ub = ua[long_enough], ub[long_enough]
+    if not long_enough.all():
+        idx, P, U = idx[long_enough], P[long_enough], U[long_enough]
     if idx.size == 0:
         return _empty_samples()
     seg = np.empty((idx.size, 2, 2))
-    seg[:, 0, 0] = ua[:, 0] * camera.fx + ua[:, 1] * camera.skew + camera.cx
-    seg[:, 0, 1] = ua[:, 1] * camera.fy + camera.cy
-    seg[:, 1, 0] = ub[:, 0] * camera.fx + ub[:, 1] * camera.skew + camera.cx
-    seg[:, 1, 1] = ub[:, 1] * camera.fy + camera.cy
+    seg[:, :, 0] = U[:, :, 0] * camera.fx + U[:, :, 1] * camera.skew + camera.cx
+    seg[:, :, 1] = U[:, :, 1] * camera.fy + camera.cy
     K = int(samples_per_limb)
-    t = (np.arange(K) + 0.5) / K  # image-uniform parameters
-    Za, Zb = Pa[:, 2:3], Pb[:, 2:3]
-    lam = t[None, :] * Za / (t[None, :] * Za + (1.0 - t[None, :]) * Zb)  # (L, K)
-    p_cam = (1.0 - lam)[..., None] * Pa[:, None, :] + lam[..., None] * Pb[:, None, :]
+    t, one_minus_t = _image_uniform(K)
+    Za, Zb = P[:, 0, 2:3], P[:, 1, 2:3]
+    tZa = t * Za
+    lam = tZa / (tZa + one_minus_t * Zb)  # (L, K)
+    p_cam = (1.0 - lam)[..., None] * P[:, None, 0, :] + lam[..., None] * P[:, None, 1, :]
     p_cam = p_cam.reshape(-1, 3)
-    limb = np.repeat(idx, K)
+    limb = idx.repeat(K)
     pipe = limb // 2
     p_rack = p_cam @ R_cr + o
     # Occlusion by other pipes, with a margin of a few pixels at the sample's depth.
@@ -254,7 +300,7 @@ def sample_limbs(
     n_img[:, 0] = -t_img[:, 1]
     n_img[:, 1] = t_img[:, 0]
     flip = n_img[:, 0] * m_img[:, 0] + n_img[:, 1] * m_img[:, 1] < 0.0
-    n_img[flip] = -n_img[flip]
+    np.negative(n_img, out=n_img, where=flip[:, None])
     return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
                        segments_uv=seg, segment_limb=idx)
 

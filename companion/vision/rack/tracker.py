@@ -72,6 +72,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._profiles[:] = 0.0
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray = None
+        self._prev_gray_mean = None
         self._velocity = np.zeros(6)
         self._last_stamp = None
         self._frames = 0
@@ -103,6 +104,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         gray = self._as_gray(image)
+        self._gray_mean = None
         prior = self._check_prior(R_prior, R_prior_std_rad)
         cfg = self.config
         cam = self.camera
@@ -136,7 +138,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             p_rack = self._texture.points_rack(pipes)
             p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
             guess = cam.project(p_cam)
-            vis = np.all(np.isfinite(guess), axis=1) & cam.in_image(guess, 8.0)
+            vis = np.isfinite(guess).all(axis=1) & cam.in_image(guess, 8.0)
             vis &= ~occluded(T[:3, 3], p_rack, self._texture.pipe, pipes, 0.0)
             guess = np.where(vis[:, None], guess, self._texture.uv_last)
             if ground_in is not None and ground_in[3] is gray:
@@ -221,7 +223,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
         if ok:
             if dt_s is not None and 0.0 < dt_s <= 0.5:
-                velocity = se3.log(se3.inverse(self._T) @ T) / dt_s
+                velocity = se3.log_one(se3.inverse(self._T) @ T) / dt_s
                 n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
                 if cfg.unobserved_velocity_tau_s > 0 and n_tex + n_ground < 3:
                     # Along the pipes the pose only followed the prediction: keep the last observed
@@ -260,6 +262,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)
         cov = self._along_pipe_covariance(cov, last, ok, dt_s, n_tex)
         self._prev_gray = gray.copy()
+        self._prev_gray_mean = self._gray_mean
         self._last_stamp = float(stamp_s)
         self._frames += 1
         return RackEstimate(

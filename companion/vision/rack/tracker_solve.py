@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import cv2
@@ -114,7 +115,7 @@ class TrackerSolve(TrackerState):
             else:
                 rng_px = cfg.search_range_px
             samples = sample_limbs(T, cam, pipes, cfg.samples_per_limb, cfg.margin_px, 12.0, 0.1,
-                                   cfg.occlusion_margin_px)
+                                   cfg.occlusion_margin_px, self._limb_lines(T[:3, 3], pipes))
             pol = polarity[samples.limb]
             img_it = img_f
             thr = cfg.edge_threshold
@@ -130,43 +131,45 @@ class TrackerSolve(TrackerState):
                 offset_px = refine_silhouette(img_raw, samples.uv, samples.normal_px, offset_px,
                                               cfg.edge_silhouette_px, cfg.edge_silhouette_px - 1,
                                               max_rel_rms=cfg.edge_silhouette_max_rms)
-            A_e, r_e, f = self._edge_rows(samples, offset_px, meas.found, T, gaps, n_par)
+            # Every row (edges, texture, ground, gravity) in one array, filled in place: no stacking copies.
+            f = np.asarray(meas.found, dtype=bool)
+            n_edge = int(f.sum())
+            n_et = n_edge + 2 * tex_uv.shape[0]
+            n_w = n_et + (2 * ground[1].shape[0] if has_ground and ground is not None else 0)
+            n_rows = n_w + (3 if self._gravity is not None else 0)
+            A = np.zeros((n_rows, n_par))
+            r = np.empty(n_rows)
+            A_e = A[:n_edge]
+            self._edge_rows(samples, offset_px, f, T, gaps, A_e, r[:n_edge])
             if cfg.estimate_edge_bias:
                 side = samples.limb[f] % 2
                 A_e[np.arange(side.size), i_bias + side] = 1.0
-                r_e = r_e - bias[side]
-            A_t, r_t = self._texture_rows(T, pipes, tex_rack, tex_uv, n_par)
-            A = np.vstack([A_e, A_t])
-            r = np.concatenate([r_e, r_t])
+                r[:n_edge] -= bias[side]
+            self._texture_rows(T, pipes, tex_rack, tex_uv, A[n_edge:n_et], r[n_edge:n_et])
             gate = None
             if it > 0:
                 gate = max(cfg.gate_px, float(rng_px)) if first else cfg.gate_px
-            n_et = r.size
             if has_ground:
                 assert ground is not None and self._z_g is not None
                 X, dXdz = plane_points(ground[0], ground[1], self._z_g + moved[i_z])
                 A_g7, r_g = ground_rows(T, cam, X, dXdz, ground[2])
-                A_g = np.zeros((r_g.size, n_par))
+                A_g = A[n_et:n_w]
                 A_g[:, :6] = A_g7[:, :6]
                 if cfg.ground_along_only:
                     e_y = np.zeros(6)
                     e_y[:3] = T[:3, :3][1, :]  # the rack's +y in the camera frame (translation part)
                     A_g[:, :6] = np.outer(A_g[:, :6] @ e_y, e_y)
                 A_g[:, i_z] = A_g7[:, 6]
-                A = np.vstack([A, A_g])
-                r = np.concatenate([r, r_g])
-            w = robust_weights(r, cfg.robust, cfg.nu_px, gate)
-            w[r_e.size : n_et] *= cfg.texture_weight
-            w[n_et:] *= cfg.ground_weight
+                r[n_et:n_w] = r_g
+            w = np.empty(n_rows)
+            w[:n_w] = robust_weights(r[:n_w], cfg.robust, cfg.nu_px, gate)
+            w[n_edge:n_et] *= cfg.texture_weight
+            w[n_et:n_w] *= cfg.ground_weight
             if self._gravity is not None:
                 # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
                 # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
-                r_g, A_g6 = gravity_rows(T[:3, :3], self._gravity[0])
-                A_g = np.zeros((3, n_par))
-                A_g[:, :6] = A_g6
-                A = np.vstack([A, A_g])
-                r = np.concatenate([r, r_g])
-                w = np.concatenate([w, np.full(3, self._gravity[1])])
+                r[n_w:], A[n_w:, :6] = gravity_rows(T[:3, :3], self._gravity[0])
+                w[n_w:] = self._gravity[1]
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
             T = T @ se3.exp_one(x[:6])
@@ -178,16 +181,19 @@ class TrackerSolve(TrackerState):
             if cfg.estimate_edge_bias:
                 bias = bias + x[i_bias : i_bias + 2]
             last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
-                    "H_data": H_data, "H": H_data + np.diag(prior), "n_edge": r_e.size, "n_et": n_et,
+                    "H_data": H_data, "n_edge": n_edge, "n_et": n_et,
                     "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
                     "ground_uv": ground[2] if has_ground and ground is not None else None}
-            small = bool(np.linalg.norm(x[:3]) < cfg.stop_translation_m
-                         and np.linalg.norm(x[3:6]) < cfg.stop_rotation_rad)
+            # |x[:3]| and |x[3:6]| as np.linalg.norm computes them (sqrt of the dot product).
+            x_v, x_w = x[:3], x[3:6]
+            small = bool(math.sqrt(x_v.dot(x_v)) < cfg.stop_translation_m
+                         and math.sqrt(x_w.dot(x_w)) < cfg.stop_rotation_rad)
             # Also stop when the update moves the rendered edges by less than stop_px (median).
-            small = small or bool(r_e.size > 0 and median_1d(np.abs(A_e @ x)) < cfg.stop_px)
+            small = small or bool(n_edge > 0 and median_1d(np.abs(A_e @ x)) < cfg.stop_px)
             small = small and it + 1 >= cfg.min_iterations
             if small and (not first or rng_px <= cfg.search_range_px):
                 break
+        last["H"] = last["H_data"] + np.diag(prior)  # the final normal matrix (only the last iteration's is used)
         r_post = last["r"] - last["A"] @ last["x"]
         n_edge = int(last["n_edge"])
         agree = np.zeros(last["samples"].uv.shape[0], dtype=bool)
@@ -200,29 +206,29 @@ class TrackerSolve(TrackerState):
         return last
 
     def _edge_rows(
-        self, samples: LimbSamples, offset: FloatArray, found: Any, T: FloatArray, gaps: FloatArray, n_par: int
-    ) -> tuple[FloatArray, FloatArray, Any]:
-        f = np.asarray(found, dtype=bool)
+        self, samples: LimbSamples, offset: FloatArray, f: Any, T: FloatArray, gaps: FloatArray,
+        A: FloatArray, r: FloatArray,
+    ) -> None:
+        """Edge rows of the found samples `f` (n,) into `A` (n, n_par) (zero on entry) and residuals into `r` (n,)."""
         J6 = pose_jacobian(samples.J_uv_pcam[f], samples.p_cam[f])  # (n, 2, 6)
         nrm = samples.normal_px[f]
-        A = np.zeros((int(f.sum()), n_par))
         A[:, :6] = np.einsum("nij,ni->nj", J6, nrm)  # σ = ξᵀ n (eq. 15)
         if self.config.estimate_gaps and self._n_gaps:
             gi = self._pipe_arrays(gaps).gap_index[samples.pipe[f]]
             has = gi >= 0
             Jg = gap_jacobian(samples.J_uv_pcam[f][has], T[:3, :3].T)
             A[np.flatnonzero(has), 6 + gi[has]] = np.einsum("ni,ni->n", Jg, nrm[has])
-        return A, offset[f], f
+        r[:] = offset[f]
 
     def _texture_rows(
-        self, T: FloatArray, pipes: PipeArrays, p_rack: FloatArray, tex_uv: FloatArray, n_par: int
-    ) -> tuple[FloatArray, FloatArray]:
+        self, T: FloatArray, pipes: PipeArrays, p_rack: FloatArray, tex_uv: FloatArray, A: FloatArray, r: FloatArray
+    ) -> None:
+        """Rows of the K texture points into `A` (2K, n_par) (zero on entry) and residuals into `r` (2K,)."""
         k = tex_uv.shape[0]
         if k == 0:
-            return np.zeros((0, n_par)), np.zeros(0)
+            return
         p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
         uv, J = self.camera.project_with_jacobian(p_cam)
-        A = np.zeros((2 * k, n_par))
         A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
         if self.config.estimate_gaps and self._n_gaps:
             gi = pipes.gap_index[self._texture.pipe]
@@ -231,5 +237,4 @@ class TrackerSolve(TrackerState):
                 rows = 2 * np.arange(k) + c
                 has = gi >= 0
                 A[rows[has], 6 + gi[has]] = Jg[has, c]
-        r = (tex_uv - uv).reshape(-1)
-        return A, r
+        r[:] = (tex_uv - uv).reshape(-1)

@@ -11,6 +11,7 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.errors import InputError
 from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, widen_along
+from companion.vision.rack.limbs import LimbLines, limb_lines
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.texture import TextureMap
 from companion.vision.rack.tracker_config import RackTrackerConfig
@@ -38,6 +39,10 @@ class TrackerState:
         self._profiles = np.zeros((n_limbs, self.config.edge_profile_px))
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray: np.ndarray[Any, np.dtype[np.uint8]] | None = None
+        # Mean grey level of every 8th pixel of `_prev_gray` when its frame computed it (`_ground_lk_inputs`),
+        # and of this frame's image: the next frame's exposure check then does not recompute it.
+        self._prev_gray_mean: float | None = None
+        self._gray_mean: float | None = None
         self._velocity = np.zeros(6)
         self._last_stamp: float | None = None
         self._frames = 0
@@ -52,6 +57,9 @@ class TrackerState:
         self._detect_short = False
         self._pipes_key: bytes | None = None
         self._pipes_cached: PipeArrays | None = None
+        # The last limb lines (camera centre bytes, pipes, lines): the predicted pose's serve both the
+        # ground mask and the solve's first iteration.
+        self._lines_cache: tuple[bytes, PipeArrays, LimbLines] | None = None
         self._weights_cache: dict[tuple[bool, int, tuple[float, float]], tuple[FloatArray, FloatArray]] = {}
         self._stale_ref = np.zeros(0, dtype=bool)
         # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
@@ -73,6 +81,17 @@ class TrackerState:
                 a.flags.writeable = False
             self._pipes_key, self._pipes_cached = key, pipes
         return self._pipes_cached
+
+    def _limb_lines(self, o_rack: FloatArray, pipes: PipeArrays) -> LimbLines:
+        """`limb_lines(o_rack, pipes)`, reused when called again with the same centre and pipes (the
+        cached, read-only `_pipe_arrays` object: the same object means the same values)."""
+        key = o_rack.tobytes()
+        cached = self._lines_cache
+        if cached is not None and cached[0] == key and cached[1] is pipes:
+            return cached[2]
+        lines = limb_lines(o_rack, pipes)
+        self._lines_cache = (key, pipes, lines)
+        return lines
 
     def _as_gray(self, image: Any) -> np.ndarray[Any, np.dtype[np.uint8]]:
         img = np.asarray(image)
