@@ -232,7 +232,13 @@ def _learn(st: _Refinement, s: LimbSamples, meas: EdgeMeasurements) -> bool:
     tot = np.bincount(s.limb[good], weights=meas.sign[good] * meas.strength[good], minlength=st.learn.size)
     mag = np.bincount(s.limb[good], weights=meas.strength[good], minlength=st.learn.size)
     decided = st.learn & (np.abs(tot) >= 0.5 * np.maximum(mag, 1e-9)) & (mag > 0)
-    st.limb_pol = np.where(decided, np.sign(tot), st.limb_pol)
+    sign = np.sign(tot)
+    # A limb against the clear majority of the others stays open: a pose a few pixels off puts its
+    # search on the neighbouring pipe's facing limb, of the opposite sign.
+    major = float(tot[decided].sum())
+    if decided.sum() >= 3 and abs(major) >= 0.5 * float(mag[decided].sum()):
+        sign = np.where(decided & (sign != np.sign(major)), 0.0, sign)
+    st.limb_pol = np.where(decided, sign, st.limb_pol)
     st.learn = st.learn & ~decided
     return bool(decided.any())
 
