@@ -311,3 +311,29 @@ def test_longest_agreeing_run_bridges_short_gaps_within_a_limb() -> None:
     assert runs[0] == 5  # samples 5-9 (sample 6 bridged); samples 2-4 break the run
     assert runs[1] == 8  # samples 10-17
     assert runs[2] == 0 and runs[3] == 0
+
+
+def test_a_limb_learning_the_sign_against_the_clear_majority_stays_open() -> None:
+    from companion.vision.rack.acquire_verify import _learn, _Refinement
+    from companion.vision.rack.edges import EdgeMeasurements
+    from companion.vision.rack.limbs import LimbSamples
+
+    n_limbs, per = 6, 8
+    limb = np.repeat(np.arange(n_limbs), per)
+    n = limb.size
+    samples = LimbSamples(p_rack=np.zeros((n, 3)), p_cam=np.zeros((n, 3)), uv=np.zeros((n, 2)),
+                          normal_px=np.zeros((n, 2)), J_uv_pcam=np.zeros((n, 2, 3)), pipe=limb // 2, limb=limb)
+    sign = np.where(limb == 1, 1.0, -1.0)  # limb 1 (a search that reached the neighbour's facing limb) disagrees
+
+    def learnt(sign_: np.ndarray) -> np.ndarray:
+        st = _Refinement(np.eye(4), np.zeros(n_limbs))
+        meas = EdgeMeasurements(offset_px=np.zeros(n), found=np.ones(n, dtype=bool), sign=sign_,
+                                strength=np.full(n, 30.0))
+        assert _learn(st, samples, meas)
+        assert not st.learn.any()
+        return st.limb_pol
+
+    np.testing.assert_array_equal(learnt(sign), [-1.0, 0.0, -1.0, -1.0, -1.0, -1.0])
+    # Without a clear majority (half the limbs each way) every limb keeps the sign it showed.
+    even = np.where(limb < 3, 1.0, -1.0)
+    np.testing.assert_array_equal(learnt(even), [1.0, 1.0, 1.0, -1.0, -1.0, -1.0])
