@@ -72,3 +72,29 @@ def test_relocks_after_lost_frames(scene: RackScene, relock_after: int) -> None:
     else:
         assert not ests[-1].ok or err > 0.05, (ests[-1].status, err)
 
+
+
+@pytest.mark.parametrize("max_jump_sigma", [5.0, 0.5])
+def test_a_relock_further_than_its_prior_allows_is_rejected(scene: RackScene, max_jump_sigma: float) -> None:
+    """The camera slides 12 cm during blank frames: the relock prior (10 cm) allows that at 5 sigma, not at
+    0.5 sigma (5 cm), where the relocked pose is refused, the last pose kept and the status says why."""
+    cfg = RackTrackerConfig(relock_after_frames=3, init_search_range_m=0.04, relock_max_jump_sigma=max_jump_sigma)
+    tr = RackTracker(MODEL, CAM, cfg)
+    rng = np.random.default_rng(4)
+    T0 = se3.make(R_DOWN, [0.9, 4.0, 2.4])
+    tr.reset(T0)
+    for k in range(3):
+        assert tr.track(scene.render(T0, CAM, noise_std=3.0, rng=rng), 0.04 * k).ok
+    blank = np.full((CAM.height, CAM.width), 120, dtype=np.uint8)
+    for k in range(3, 8):
+        assert not tr.track(blank, 0.04 * k).ok
+    T1 = se3.make(R_DOWN, [1.02, 4.03, 2.4])
+    ests = [tr.track(scene.render(T1, CAM, noise_std=3.0, rng=rng), 0.04 * k) for k in range(8, 13)]
+    if max_jump_sigma == 5.0:
+        assert ests[-1].ok and _pos_err(ests[-1].T_rack_cam, T1) < 0.01
+    else:
+        assert not any(e.ok for e in ests)
+        assert all(e.status.startswith("relock 0.1") for e in ests), [e.status for e in ests]
+        assert all(_pos_err(e.T_rack_cam, T0) < 0.01 for e in ests)  # the last pose is kept
+    with pytest.raises(InputError, match="relock_max_jump_sigma"):
+        RackTrackerConfig(relock_max_jump_sigma=0.0)

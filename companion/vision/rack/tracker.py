@@ -20,7 +20,7 @@ import numpy as np
 
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
-from companion.geometry import se3
+from companion.geometry import se3, so3
 from companion.vision.rack.gap_scan import scan_gaps
 from companion.vision.rack.limbs import occluded
 from companion.vision.rack.motion import (
@@ -55,6 +55,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._start_std = (_positive(position_std_m, "position_std_m", cfg.reset_prior_translation_m),
                            _positive(rotation_std_rad, "rotation_std_rad", cfg.reset_prior_rotation_rad))
         self._lost_frames = 0
+        self._relocking = False
         self._along_std_m = self._start_std[0]
         if cumulative_gaps is not None:
             g = np.asarray(cumulative_gaps, dtype=np.float64).ravel()
@@ -206,6 +207,14 @@ class RackTracker(TrackerSolve, TrackerMaps):
             status = f"edge residual too large ({residual_px:.2f} px)"
         elif not cond < cfg.max_condition:
             status = f"ill-conditioned ({cond:.3g})"
+        elif self._relocking:
+            # The relock's wide search may take another structure (a beam, the deck) far from where the
+            # rack was a few frames ago: a pose beyond the relock prior's reach is not the rack.
+            jump_m = float(np.linalg.norm(T[:3, 3] - T_pred[:3, 3]))
+            jump_rad = float(np.linalg.norm(so3.log(T_pred[:3, :3].T @ T[:3, :3])))
+            n_sigma = cfg.relock_max_jump_sigma
+            if jump_m > n_sigma * self._start_std[0] or jump_rad > n_sigma * self._start_std[1]:
+                status = f"relock {jump_m:.2f} m / {np.degrees(jump_rad):.1f} deg from the last pose"
         ok = status == ""
         # ---- covariance from the final normal matrix and residual scale
         wpos = w > 0
@@ -241,6 +250,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             if self._gravity is not None:
                 self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True
+            self._relocking = False
             self._lost_frames = 0
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
@@ -255,6 +265,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
                 # it one lost stretch loses the rack for good). Not with estimated gaps: on a wrong model the
                 # wide search locks onto grating bars and shadows and runs away (stress bench, 2026-11-24).
                 self._initialized = False
+                self._relocking = True
                 self._start_std = (cfg.relock_prior_translation_m, cfg.relock_prior_rotation_rad)
             self._ground_uv = np.zeros((0, 2))
             if len(self._texture):

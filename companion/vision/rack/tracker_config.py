@@ -54,7 +54,8 @@ class RackTrackerConfig:
     those of the constant-velocity prediction (a prior on every later frame): both only matter
     in weakly observed directions; after `relock_after_frames` consecutive rejected frames (0 =
     never) the wide first-frame search runs again from the last pose, with `relock_prior_*` in
-    place of the reset prior (not with `estimate_gaps`); `estimate_gaps` solves the cumulative gaps too;
+    place of the reset prior (not with `estimate_gaps`), and a relocked pose further than
+    `relock_max_jump_sigma` of those from the last pose is rejected; `estimate_gaps` solves the cumulative gaps too;
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
@@ -131,6 +132,7 @@ class RackTrackerConfig:
     relock_after_frames: int = 3
     relock_prior_translation_m: float = 0.1
     relock_prior_rotation_rad: float = 0.02
+    relock_max_jump_sigma: float = 5.0
     estimate_gaps: bool = False
     estimate_edge_bias: bool = True
     edge_bias_rate_px: float = 0.02
@@ -173,7 +175,7 @@ class RackTrackerConfig:
         if not -1.0 <= self.template_min_ncc <= 1.0:
             raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
         for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
-                     "relock_prior_translation_m", "relock_prior_rotation_rad"):
+                     "relock_prior_translation_m", "relock_prior_rotation_rad", "relock_max_jump_sigma"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
 

@@ -52,6 +52,7 @@ class TrackerState:
         self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
         self._lost_frames = 0
         self._along_std_m = self._start_std[0]  # std of the position along the pipes (`along_pipe.py`)
+        self._relocking = False  # the wide search runs again after lost frames (`relock_after_frames`)
         self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
         self._since_detect = 0
         self._detect_short = False
