@@ -9,7 +9,7 @@ from companion.camera import PinholeCamera
 from companion.errors import InputError
 from companion.geometry import se3, so3
 from companion.sim.rack_scene import RackScene
-from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+from companion.vision.rack import RackEstimate, RackModel, RackTracker, RackTrackerConfig
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -52,20 +52,27 @@ def test_reset_std_input_errors() -> None:
         RackTrackerConfig(relock_after_frames=-1)
 
 
-@pytest.mark.parametrize("relock_after", [3, 0])
-def test_relocks_after_lost_frames(scene: RackScene, relock_after: int) -> None:
-    """Blank frames while the camera slides 12 cm: with re-locking the rack is found again, without it not."""
-    tr = RackTracker(MODEL, CAM, RackTrackerConfig(relock_after_frames=relock_after, init_search_range_m=0.04))
+T0 = se3.make(R_DOWN, [0.9, 4.0, 2.4])
+T1 = se3.make(R_DOWN, [1.02, 4.03, 2.4])  # 12 cm across, 3 cm along the pipes from T0
+
+
+def _slide_while_blank(scene: RackScene, tr: RackTracker) -> list[RackEstimate]:
+    """Three frames at T0, five blank frames (lost), then five frames at T1: the estimates of the last five."""
     rng = np.random.default_rng(4)
-    T0 = se3.make(R_DOWN, [0.9, 4.0, 2.4])
     tr.reset(T0)
     for k in range(3):
         assert tr.track(scene.render(T0, CAM, noise_std=3.0, rng=rng), 0.04 * k).ok
     blank = np.full((CAM.height, CAM.width), 120, dtype=np.uint8)
     for k in range(3, 8):
         assert not tr.track(blank, 0.04 * k).ok
-    T1 = se3.make(R_DOWN, [1.02, 4.03, 2.4])
-    ests = [tr.track(scene.render(T1, CAM, noise_std=3.0, rng=rng), 0.04 * k) for k in range(8, 13)]
+    return [tr.track(scene.render(T1, CAM, noise_std=3.0, rng=rng), 0.04 * k) for k in range(8, 13)]
+
+
+@pytest.mark.parametrize("relock_after", [3, 0])
+def test_relocks_after_lost_frames(scene: RackScene, relock_after: int) -> None:
+    """Blank frames while the camera slides 12 cm: with re-locking the rack is found again, without it not."""
+    tr = RackTracker(MODEL, CAM, RackTrackerConfig(relock_after_frames=relock_after, init_search_range_m=0.04))
+    ests = _slide_while_blank(scene, tr)
     err = _pos_err(ests[-1].T_rack_cam, T1)
     if relock_after:
         assert ests[-1].ok and err < 0.01, (ests[-1].status, err)
@@ -73,23 +80,12 @@ def test_relocks_after_lost_frames(scene: RackScene, relock_after: int) -> None:
         assert not ests[-1].ok or err > 0.05, (ests[-1].status, err)
 
 
-
 @pytest.mark.parametrize("max_jump_sigma", [5.0, 0.5])
 def test_a_relock_further_than_its_prior_allows_is_rejected(scene: RackScene, max_jump_sigma: float) -> None:
     """The camera slides 12 cm during blank frames: the relock prior (10 cm) allows that at 5 sigma, not at
     0.5 sigma (5 cm), where the relocked pose is refused, the last pose kept and the status says why."""
     cfg = RackTrackerConfig(relock_after_frames=3, init_search_range_m=0.04, relock_max_jump_sigma=max_jump_sigma)
-    tr = RackTracker(MODEL, CAM, cfg)
-    rng = np.random.default_rng(4)
-    T0 = se3.make(R_DOWN, [0.9, 4.0, 2.4])
-    tr.reset(T0)
-    for k in range(3):
-        assert tr.track(scene.render(T0, CAM, noise_std=3.0, rng=rng), 0.04 * k).ok
-    blank = np.full((CAM.height, CAM.width), 120, dtype=np.uint8)
-    for k in range(3, 8):
-        assert not tr.track(blank, 0.04 * k).ok
-    T1 = se3.make(R_DOWN, [1.02, 4.03, 2.4])
-    ests = [tr.track(scene.render(T1, CAM, noise_std=3.0, rng=rng), 0.04 * k) for k in range(8, 13)]
+    ests = _slide_while_blank(scene, RackTracker(MODEL, CAM, cfg))
     if max_jump_sigma == 5.0:
         assert ests[-1].ok and _pos_err(ests[-1].T_rack_cam, T1) < 0.01
     else:
