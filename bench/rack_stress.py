@@ -90,6 +90,8 @@ CELLS: dict[str, dict[str, Any]] = {
 }
 TUNING_SEEDS = (0, 1)
 HELDBACK_SEEDS = (2, 3)
+# More tuning seeds for diagnosing one cell (`--seeds extra --cells ...`); never reported as held back.
+EXTRA_SEEDS = (4, 5, 6, 7)
 
 
 def build_rack(name: str) -> RackModel:
@@ -371,7 +373,7 @@ def parse_set(items: list[str]) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", choices=("tuning", "heldback", "all"), default="tuning")
+    ap.add_argument("--seeds", choices=("tuning", "heldback", "all", "extra"), default="tuning")
     ap.add_argument("--quick", action="store_true", help="smoke: first seed of the half, first 100 frames")
     ap.add_argument("--cells", default="", help="comma-separated subset of the cells")
     ap.add_argument("--rows", default="vision,edge_only,prior")
@@ -384,7 +386,8 @@ def main() -> None:
     args = ap.parse_args()
     cv2.setNumThreads(1)
     t_start = time.perf_counter()
-    seeds = {"tuning": TUNING_SEEDS, "heldback": HELDBACK_SEEDS, "all": TUNING_SEEDS + HELDBACK_SEEDS}[args.seeds]
+    seeds = {"tuning": TUNING_SEEDS, "heldback": HELDBACK_SEEDS, "all": TUNING_SEEDS + HELDBACK_SEEDS,
+             "extra": EXTRA_SEEDS}[args.seeds]
     if args.quick:
         seeds = seeds[:1]
     n_frames = 100 if args.quick else None

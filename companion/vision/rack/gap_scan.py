@@ -5,8 +5,20 @@ look that far for every limb, and over a grating or painted lines parallel to th
 bar before the limb (stress bench, 2026-11-24: the fourth pipe of the wrong-gap rack locked 22 cm
 off for good). A pipe, though, is a *pair* of edges at the distance its width gives, both moving
 together when the pipe shifts along rack x: this module scores every shift of each pipe on a
-grid by the weaker of its two limbs' mean gradients, which a single bar or line cannot satisfy.
-Pure function, vectorized over samples and shifts.
+grid by both of its limbs' gradients at once, which a single bar or line cannot satisfy.
+
+The score of a shift multiplies, for each limb, its mean *absolute* gradient by a factor for how
+steady the grey level just inside it is along the limb, 1 / (1 + std / `inside_scale`), and takes
+the geometric mean of the two limbs. Signed means (the first version) cancel where the background
+changes brightness along a limb: a pale pipe over a grating is brighter than one bar and darker
+than the next, and the right shift scored 5-8 grey levels against 25-30 for a shift whose "limbs"
+were the right limb of one pipe and of its neighbour (stress bench, wrong-gap rack over a grating,
+2026-11-26). Nor can the two limbs be asked to share a polarity: a lit cylinder is brighter than
+the ground on its sunny limb and darker on its shaded one. What a wrong shift cannot fake is the
+inside: at the right shift a few pixels inside each limb is the pipe's cladding, the same grey
+all along the limb, while a limb placed on a neighbour's edge has the ground (grating, shadows)
+inside. Absolute gradients alone found the gaps in 11 of 24 first frames of fresh stress runs,
+with the inside factor in 23 (signed means: 1). Pure function, vectorized over samples and shifts.
 """
 
 from __future__ import annotations
@@ -42,6 +54,8 @@ def scan_gaps(
     samples_per_limb: int = 24,
     min_score: float = 3.0,
     margin_px: float = 6.0,
+    inside_px: float = 4.0,
+    inside_scale: float = 10.0,
 ) -> GapScan:
     """Shift each parallel pipe that a gap moves (all but the first) by -range_m..range_m along rack x.
 
@@ -49,9 +63,10 @@ def scan_gaps(
     (m, shape (n-1,)), `image_f32` the gray image. For a shift s the limb samples move along their
     normals by s times their image motion per metre of rack x (first order); the profile across each
     sample is read once (blurred by 1.5 px, one `cv2.remap`) and interpolated at every shift. A
-    pipe's score at s is min(|mean gradient of its left limb|, |... right limb|) (either polarity,
-    but consistent along each limb); the best shift is taken when it reaches `min_score` and both
-    limbs have at least 4 samples in view, else that gap is kept.
+    pipe's score at s is sqrt(m_left * m_right), m = mean |gradient| over the limb's samples (grey
+    levels per 2 px, either polarity, sample by sample) / (1 + std over the samples of the grey level
+    `inside_px` inside the limb / `inside_scale`); the best shift is taken when it reaches
+    `min_score` and both limbs have at least 4 samples in view, else that gap is kept.
     """
     out = np.asarray(gaps, dtype=np.float64).copy()
     score_out = np.zeros(out.size)
@@ -76,6 +91,11 @@ def scan_gaps(
     f = pos - i0
     rows = np.arange(n)[:, None]
     gs = (1.0 - f) * g[rows, i0] + f * g[rows, np.minimum(i0 + 1, 2 * K)]
+    # Grey level `inside_px` inside each limb (the pipe's cladding when the shift is right), per shift.
+    posi = np.clip(pos + 1.0 - inside_px, 0.0, 2.0 * K + 2 - 1e-6)
+    j0 = np.floor(posi).astype(np.intp)
+    fj = posi - j0
+    ins = (1.0 - fj) * prof[rows, j0] + fj * prof[rows, np.minimum(j0 + 1, 2 * K + 2)]
     # Score table (gaps, shifts); gaps whose pipe is not seen well keep a flat zero row.
     table = np.zeros((out.size, shifts.size))
     seen = np.zeros(out.size, dtype=bool)
@@ -87,7 +107,8 @@ def scan_gaps(
         right = samples.limb == 2 * m + 1
         if left.sum() < 4 or right.sum() < 4:
             continue
-        table[gi] = np.minimum(np.abs(gs[left].mean(axis=0)), np.abs(gs[right].mean(axis=0)))
+        mag = np.abs(gs[left]).mean(axis=0) / (1.0 + ins[left].std(axis=0) / inside_scale)
+        table[gi] = np.sqrt(mag * np.abs(gs[right]).mean(axis=0) / (1.0 + ins[right].std(axis=0) / inside_scale))
         seen[gi] = True
     table[table < min_score] = 0.0
     pick = _ordered_best(out, shifts, table - 1e-6 * np.abs(shifts)[None, :])  # ties: the model's gap

@@ -64,6 +64,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             self._gaps = g.copy()
         else:
             self._gaps = self.model.cumulative_gaps.copy()
+        self._gaps_var = np.full(self._n_gaps, np.inf)
         self._edge_bias = np.zeros(2)
         self._scale2 = 0.5
         self._up_rack = None
@@ -245,6 +246,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
                 self._velocity = np.zeros(6)
             self._T = T
             self._gaps = gaps
+            if n_gap:
+                self._gaps_var = np.maximum(np.diag(cov_full)[6 : 6 + n_gap], 1e-10) + cfg.gap_walk_m**2
             self._edge_bias = last["bias"]
             self._scale2 = scale2
             if self._gravity is not None:

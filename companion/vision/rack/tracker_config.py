@@ -55,7 +55,10 @@ class RackTrackerConfig:
     in weakly observed directions; after `relock_after_frames` consecutive rejected frames (0 =
     never) the wide first-frame search runs again from the last pose, with `relock_prior_*` in
     place of the reset prior (not with `estimate_gaps`), and a relocked pose further than
-    `relock_max_jump_sigma` of those from the last pose is rejected; `estimate_gaps` solves the cumulative gaps too;
+    `relock_max_jump_sigma` of those from the last pose is rejected; `estimate_gaps` solves the cumulative gaps too,
+    each frame anchored at the last frame's gaps with their posterior variance plus a random walk of
+    `gap_walk_m` per frame (the gaps are constants: without that memory a frame without the first pipe
+    in view lets the gaps and the sideways position slide together);
     `estimate_edge_bias` solves two slowly varying offsets (px, along the outward normal) of the
     measured edges, one per limb side, that absorb the systematic shift of gradient-peak edges
     next to shaded limbs (changing by about `edge_bias_rate_px` per frame);
@@ -124,6 +127,7 @@ class RackTrackerConfig:
     prior_translation_m: float = 0.05
     prior_rotation_rad: float = 0.02
     prior_gap_m: float = 0.05
+    gap_walk_m: float = 0.001
     reset_prior_translation_m: float = 0.01
     prior_rate_noise_rad: float = 1e-3
     reset_prior_rotation_rad: float = 0.002
@@ -175,7 +179,7 @@ class RackTrackerConfig:
         if not -1.0 <= self.template_min_ncc <= 1.0:
             raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
         for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
-                     "relock_prior_translation_m", "relock_prior_rotation_rad", "relock_max_jump_sigma"):
+                     "relock_prior_translation_m", "relock_prior_rotation_rad", "relock_max_jump_sigma", "gap_walk_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
 

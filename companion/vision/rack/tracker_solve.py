@@ -82,8 +82,13 @@ class TrackerSolve(TrackerState):
         i_z = n_par
         n_par += 1 if has_ground else 0
         prior, anchor_info = self._solver_weights(first, n_par, i_bias)
+        if n_gap and not first and np.all(np.isfinite(self._gaps_var)):
+            # The gaps are constants: anchor them at the last frame's, in the solver's information scale
+            # (the posterior is inv(H) * scale2 * inflation), as z_g below.
+            anchor_info = anchor_info.copy()
+            anchor_info[6:i_bias] = self._scale2 * cfg.covariance_inflation / self._gaps_var
         if has_ground:
-            prior, anchor_info = prior.copy(), anchor_info.copy()
+            prior, anchor_info = prior.copy(), np.array(anchor_info)
             prior[i_z] = 1.0
             # In the solver's information scale (the posterior is inv(H) * scale2 * inflation, see the
             # covariance): with 1 / var here a frame that does not observe z_g multiplied its variance

@@ -32,6 +32,8 @@ class TrackerState:
         self._n_gaps = model.num_parallel - 1
         self._T: FloatArray | None = None
         self._gaps = model.cumulative_gaps.copy()
+        # Variance (m^2) of each cumulative gap carried to the next frame (inf: not estimated yet).
+        self._gaps_var = np.full(self._n_gaps, np.inf)
         self._edge_bias = np.zeros(2)
         self._polarity = np.zeros(n_limbs)
         self._polarity_known = np.zeros(n_limbs, dtype=bool)
