@@ -122,10 +122,12 @@ def _gap_step_after_a_shifted_frame(gap_walk_m: float) -> float:
 
 def test_estimated_gaps_remember_the_frames_before() -> None:
     """The gaps are constants: one frame that shows a pipe elsewhere (a limb mistaken, a neighbour's
-    edge) moves them less than a frame-by-frame solve (a huge per-frame walk) lets it. The default
-    walk (1 mm per frame) is a short memory on purpose (longer ones lost the wrong-gap stress cell's
-    roll, docs/rack.md): 2.1 against 3.0 cm here when written."""
+    edge) moves them less than a frame-by-frame solve (a huge per-frame walk) lets it: 1.9 against 3.0
+    cm with the default walk (1 mm per frame, a short memory), nothing with 0.01 mm. The latter checks
+    that the information accumulates over the frames (with one frame's variance as the anchor, as
+    first written, 0.01 mm still let the gaps move 1.8 cm)."""
     held = _gap_step_after_a_shifted_frame(RackTrackerConfig().gap_walk_m)
     free = _gap_step_after_a_shifted_frame(10.0)
     assert free > 0.02
     assert held < 0.8 * free
+    assert _gap_step_after_a_shifted_frame(1e-5) < 0.1 * free

@@ -13,6 +13,7 @@ decide `ok`; the covariance comes from the final normal matrix and the residual 
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import cv2
@@ -227,8 +228,12 @@ class RackTracker(TrackerSolve, TrackerMaps):
         except np.linalg.LinAlgError:
             cov_full = np.eye(x.size) * 1e6
         cov = 0.5 * (cov_full[:6, :6] + cov_full[:6, :6].T)
+        cov_carry = cov_full  # the gaps': with their own anchor (see `_solve`)
+        if np.any(last["carry_info"] > 0):
+            with contextlib.suppress(np.linalg.LinAlgError):  # singular: keep cov_full
+                cov_carry = np.linalg.inv(last["H"] + np.diag(last["carry_info"])) * scale2 * cfg.covariance_inflation
         n_gap = self._n_gaps if cfg.estimate_gaps else 0
-        gap_std = np.sqrt(np.maximum(np.diag(cov_full)[6 : 6 + n_gap], 0.0)) if n_gap else np.zeros(self._n_gaps)
+        gap_std = np.sqrt(np.maximum(np.diag(cov_carry)[6 : 6 + n_gap], 0.0)) if n_gap else np.zeros(self._n_gaps)
         # ---- state update
         dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
         if ok:
@@ -247,7 +252,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             self._T = T
             self._gaps = gaps
             if n_gap:
-                self._gaps_var = np.maximum(np.diag(cov_full)[6 : 6 + n_gap], 1e-10) + cfg.gap_walk_m**2
+                self._gaps_var = np.maximum(np.diag(cov_carry)[6 : 6 + n_gap], 1e-10) + cfg.gap_walk_m**2
             self._edge_bias = last["bias"]
             self._scale2 = scale2
             if self._gravity is not None:

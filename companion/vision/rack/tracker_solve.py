@@ -199,6 +199,15 @@ class TrackerSolve(TrackerState):
             if small and (not first or rng_px <= cfg.search_range_px):
                 break
         last["H"] = last["H_data"] + np.diag(prior)  # the final normal matrix (only the last iteration's is used)
+        # The gaps are carried by the tracker itself: their posterior must include their anchor, or each
+        # frame's variance is that one frame's and the estimate never accumulates (the pose's covariance
+        # leaves its motion prior out on purpose: it is a measurement for the daemon's filter). Not z_g:
+        # accumulated, its variance shrank to centimetres at wrong heights (beams, the deck; stress bench
+        # median cell 2.61 -> 4.55 cm, docs/rack.md), so it keeps each frame's variance plus its walk.
+        carry = np.zeros(n_par)
+        if n_gap and not first:
+            carry[6:i_bias] = anchor_info[6:i_bias]
+        last["carry_info"] = carry
         r_post = last["r"] - last["A"] @ last["x"]
         n_edge = int(last["n_edge"])
         agree = np.zeros(last["samples"].uv.shape[0], dtype=bool)
