@@ -51,3 +51,26 @@ def test_ground_corners_are_found_outside_the_pipes_only(rng: np.random.Generato
     assert uv.shape[0] == 50
     assert not np.any((uv[:, 0] > 100 - 6) & (uv[:, 0] < 180 + 6))  # the pipe and a 6 px margin around it
     assert np.all((uv >= 10) & (uv <= np.array([349, 229])))
+
+
+def test_ground_points_earn_their_weight_frame_by_frame() -> None:
+    """Each accepted frame a kept ground point has fitted the plane once more (its rows' weight grows
+    with that count up to `ground_trust_frames`); a new one starts at 0; a lost frame forgets them."""
+    from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
+    from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.1], length=10.0)
+    scene = FieldRackScene(model, seed=3, config=FieldSceneConfig(ground="natural", num_spots=20, jpeg_quality=0))
+    tr = RackTracker(model, CAM, RackTrackerConfig(ground_trust_frames=10))
+    rng = np.random.default_rng(3)
+    T = se3.make(so3.exp(np.radians([0.3, -0.2, 2.0])) @ R_DOWN, [0.55, 4.0, 2.2])
+    tr.reset(T)
+    ages = []
+    for k in range(6):
+        Tk = T @ se3.make(np.eye(3), [0.0, -0.02 * k, 0.0])  # 0.5 m/s along the pipes (camera -y = rack +y)
+        assert tr.track(scene.render(Tk, CAM, noise_std=3.0, rng=rng), k / 25.0).ok
+        ages.append(tr._ground_age.copy())
+    assert ages[0].size and np.all(ages[0] == 0)
+    assert ages[-1].max() == 5 and np.median(ages[-1]) >= 3
+    tr.track(np.zeros((CAM.height, CAM.width), dtype=np.uint8), 6 / 25.0)  # nothing to see: lost
+    assert tr._ground_age.size == 0

@@ -276,6 +276,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
                 self._relocking = True
                 self._start_std = (cfg.relock_prior_translation_m, cfg.relock_prior_rotation_rad)
             self._ground_uv = np.zeros((0, 2))
+            self._ground_age = np.zeros(0)
             if len(self._texture):
                 self._texture.uv_last = tex_uv
             cov = cov + np.diag([0.05**2] * 3 + [0.02**2] * 3)

@@ -38,7 +38,8 @@ class RackTrackerConfig:
     alone then fix roll against sideways slide, which a frame-to-frame constraint can only hold
     (with a wrong z_g, bend) but never correct,
     `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
-    random walk allowed to z_g; `edge_tangent_px` > 0 averages each
+    random walk allowed to z_g; `ground_trust_frames` the frames a new ground point's rows take to
+    reach full weight (1 = at once); `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
     averages out); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
@@ -110,6 +111,7 @@ class RackTrackerConfig:
     ground_along_only: bool = False
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
+    ground_trust_frames: int = 10
     edge_profile_rate: float = 0.1
     edge_tangent_px: float = 0.0
     blur_sigma_px: float = 0.0
@@ -174,6 +176,8 @@ class RackTrackerConfig:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.relock_after_frames < 0:
             raise InputError(f"relock_after_frames: must be >= 0, got {self.relock_after_frames}")
+        if self.ground_trust_frames < 1:
+            raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
         if not -1.0 <= self.template_min_ncc <= 1.0:

@@ -68,8 +68,9 @@ class TrackerMaps(TrackerState):
         self, gray: np.ndarray[Any, np.dtype[np.uint8]], T_pred: FloatArray,
         lk_in: tuple[FloatArray, FloatArray, Any, np.ndarray[Any, np.dtype[np.uint8]]] | None,
         lk_out: tuple[FloatArray, Any] | None = None,
-    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
-        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection.
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+        """Lucas-Kanade of last frame's ground points into this image, seeded by their predicted projection:
+        (ray origin (3,), ray directions (K, 3), pixels (K, 2), frames each has fitted the plane (K,)).
 
         `lk_in` from `_ground_lk_inputs`; `lk_out` (pixels (K, 2), ok (K,)) when the caller already tracked
         them (in one call with the texture points: each point's result does not depend on the others).
@@ -89,7 +90,7 @@ class TrackerMaps(TrackerState):
         mask = ground_mask(gray.shape[:2], polygons, cfg.margin_px)
         self._silhouettes_pred = (polygons, mask)
         ok &= on_ground(uv, mask)
-        return self._ground_o, self._ground_d[ok], uv[ok]
+        return self._ground_o, self._ground_d[ok], uv[ok], self._ground_age[ok]
 
     def _update_ground(
         self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray
@@ -99,6 +100,7 @@ class TrackerMaps(TrackerState):
         if cfg.ground_points <= 0:
             return
         keep_uv = np.zeros((0, 2))
+        keep_age = np.zeros(0)
         i_z = int(last["i_z"])
         if i_z >= 0:
             # The ground lies below the pipes' support plane, and it does not move: a frame's estimate may
@@ -115,6 +117,7 @@ class TrackerMaps(TrackerState):
             ground_uv = last.get("ground_uv")
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
                 keep_uv = ground_uv[ok]
+                keep_age = last["ground_age"][ok] + 1.0
         # the predicted pose's silhouettes and ground mask (computed for tracking) are close enough for the margin
         if self._silhouettes_pred is None:
             polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
@@ -126,7 +129,8 @@ class TrackerMaps(TrackerState):
             # A pipe sweeps over the ground next to it as the camera moves (parallax): a ground point at
             # its limb is tracked onto the pipe's cladding and pulls z_g up towards the pipes. Drop
             # points that come within the margin of a pipe.
-            keep_uv = keep_uv[on_ground(keep_uv, mask)]
+            on = on_ground(keep_uv, mask)
+            keep_uv, keep_age = keep_uv[on], keep_age[on]
         if self._z_g is None:
             # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
             top = 2.0 * float(np.max(self.model.radii))
@@ -141,6 +145,7 @@ class TrackerMaps(TrackerState):
                                        cfg.texture_min_distance_px, cfg.margin_px, cfg.ground_min_corner_ratio, mask)
         uv = np.vstack([keep_uv, new])
         self._ground_uv = uv
+        self._ground_age = np.concatenate([keep_age, np.zeros(new.shape[0])])
         self._ground_o = T[:3, 3].copy()
         self._ground_d = self.camera.unproject(uv) @ T[:3, :3].T if uv.shape[0] else np.zeros((0, 3))
 

@@ -65,12 +65,12 @@ class TrackerSolve(TrackerState):
         tex_uv: FloatArray,
         first: bool,
         polarity: FloatArray,
-        ground: tuple[FloatArray, FloatArray, FloatArray] | None,
+        ground: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None,
     ) -> dict[str, Any]:
         """Iterate render -> search -> IRLS -> exp update from pose T and gaps; returns the final state.
 
-        `ground`: (ray origin (3,), ray directions (K, 3), current pixels (K, 2)) of the ground
-        points (rack frame), or None; with them the ground height z_g is the last parameter.
+        `ground`: (ray origin (3,), ray directions (K, 3), current pixels (K, 2), frames fitted (K,)) of
+        the ground points (rack frame), or None; with them the ground height z_g is the last parameter.
         """
         cfg = self.config
         cam = self.camera
@@ -170,6 +170,12 @@ class TrackerSolve(TrackerState):
             w[:n_w] = robust_weights(r[:n_w], cfg.robust, cfg.nu_px, gate)
             w[n_edge:n_et] *= cfg.texture_weight
             w[n_et:n_w] *= cfg.ground_weight
+            if has_ground and ground is not None and cfg.ground_trust_frames > 1:
+                # A new point earns its weight by fitting the plane for `ground_trust_frames` frames: corners
+                # on an unmodelled structure nearer the camera (an overhead beam) move faster than the
+                # ground's and, many at once as it comes into view, carried the along-pipe position with
+                # them (stress bench, docs/rack.md).
+                w[n_et:n_w] *= np.repeat(np.minimum(1.0, (ground[3] + 1.0) / cfg.ground_trust_frames), 2)
             if self._gravity is not None:
                 # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
                 # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
@@ -188,7 +194,8 @@ class TrackerSolve(TrackerState):
             last = {"samples": samples, "meas": meas, "found": f, "A": A, "r": r, "w": w, "x": x,
                     "H_data": H_data, "n_edge": n_edge, "n_et": n_et,
                     "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
-                    "ground_uv": ground[2] if has_ground and ground is not None else None}
+                    "ground_uv": ground[2] if has_ground and ground is not None else None,
+                    "ground_age": ground[3] if has_ground and ground is not None else None}
             # |x[:3]| and |x[3:6]| as np.linalg.norm computes them (sqrt of the dot product).
             x_v, x_w = x[:3], x[3:6]
             small = bool(math.sqrt(x_v.dot(x_v)) < cfg.stop_translation_m

@@ -159,6 +159,7 @@ class TrackerState:
         self._ground_uv = np.zeros((0, 2))  # pixels in the previous image
         self._ground_o = np.zeros(3)  # previous accepted camera centre (rack frame)
         self._ground_d = np.zeros((0, 3))  # their rays from it (rack frame)
+        self._ground_age = np.zeros(0)  # frames each has fitted the ground plane (see `ground_trust_frames`)
         self._z_g: float | None = None
         self._z_g_var = 0.0
 
