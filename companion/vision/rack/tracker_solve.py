@@ -170,11 +170,13 @@ class TrackerSolve(TrackerState):
             w[:n_w] = robust_weights(r[:n_w], cfg.robust, cfg.nu_px, gate)
             w[n_edge:n_et] *= cfg.texture_weight
             w[n_et:n_w] *= cfg.ground_weight
-            if has_ground and ground is not None and cfg.ground_trust_frames > 1:
+            if has_ground and ground is not None and cfg.ground_trust_frames > 1 and \
+                    np.count_nonzero(ground[3] >= cfg.ground_trust_frames - 1) >= 3:
                 # A new point earns its weight by fitting the plane for `ground_trust_frames` frames: corners
                 # on an unmodelled structure nearer the camera (an overhead beam) move faster than the
                 # ground's and, many at once as it comes into view, carried the along-pipe position with
-                # them (stress bench, docs/rack.md).
+                # them (stress bench, docs/rack.md). Only while three points have earned it: after a lost
+                # stretch (all points new) holding them all back let the along-pipe position drift.
                 w[n_et:n_w] *= np.repeat(np.minimum(1.0, (ground[3] + 1.0) / cfg.ground_trust_frames), 2)
             if self._gravity is not None:
                 # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
