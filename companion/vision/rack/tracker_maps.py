@@ -132,7 +132,7 @@ class TrackerMaps(TrackerState):
             on = on_ground(keep_uv, mask)
             keep_uv, keep_age = keep_uv[on], keep_age[on]
         if self._z_g is None:
-            # First guess: the ground as far below the pipes' tops as the camera is above them (weak).
+            # First guess: the ground twice as far below the pipes' tops as the camera is above them (weak).
             top = 2.0 * float(np.max(self.model.radii))
             self._z_g = top - 2.0 * max(float(T[2, 3]) - top, 0.5)
             self._z_g_var = 2.0**2
