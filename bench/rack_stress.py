@@ -367,7 +367,10 @@ def parse_set(items: list[str]) -> dict[str, Any]:
         if key not in fields:
             raise SystemExit(f"--set: unknown RackTrackerConfig field {key!r}")
         default = getattr(RackTrackerConfig(), key)
-        out[key] = (val.lower() in ("1", "true", "yes")) if isinstance(default, bool) else type(default)(val)
+        if default is None:  # an optional number (e.g. ground_height_m): "none" keeps it unset
+            out[key] = None if val.lower() == "none" else float(val)
+        else:
+            out[key] = (val.lower() in ("1", "true", "yes")) if isinstance(default, bool) else type(default)(val)
     return out
 
 

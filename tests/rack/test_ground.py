@@ -74,3 +74,35 @@ def test_ground_points_earn_their_weight_frame_by_frame() -> None:
     assert ages[-1].max() == 5 and np.median(ages[-1]) >= 3
     tr.track(np.zeros((CAM.height, CAM.width), dtype=np.uint8), 6 / 25.0)  # nothing to see: lost
     assert tr._ground_age.size == 0
+
+
+def test_a_known_ground_height_holds_the_along_pipe_position_without_texture() -> None:
+    """Flying 0.8 m along the pipes with no spot in view only the ground's flow sees the motion, and it
+    gives the speed over the ground's depth: with the depth from the first guess (the online estimate
+    cannot observe it) the along-pipe position drifts by the guess's error; with `ground_height_m` it holds.
+    A ground above the support plane, or a zero std, is refused."""
+    import pytest
+
+    from companion.errors import InputError
+    from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
+    from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.1], length=10.0)
+    scene = FieldRackScene(model, seed=4, config=FieldSceneConfig(ground="natural", num_spots=0, ground_z_m=-2.0,
+                                                                  jpeg_quality=0))
+    T = se3.make(so3.exp(np.radians([0.3, -0.2, 2.0])) @ R_DOWN, [0.55, 3.0, 2.3])
+    along_err_m = {}
+    for known in (None, -2.0):
+        tr = RackTracker(model, CAM, RackTrackerConfig(ground_height_m=known))
+        tr.reset(T)
+        rng = np.random.default_rng(5)
+        for k in range(41):
+            T_k = T @ se3.make(np.eye(3), [0.0, -0.02 * k, 0.0])  # 0.5 m/s along the pipes (camera -y = rack +y)
+            est = tr.track(scene.render(T_k, CAM, noise_std=3.0, rng=rng), k / 25.0)
+        along_err_m[known] = abs(float(est.T_rack_cam[1, 3] - T_k[1, 3]))
+    assert along_err_m[-2.0] < 0.02
+    assert along_err_m[None] > 3 * along_err_m[-2.0]
+    with pytest.raises(InputError, match="ground_height_m"):
+        RackTrackerConfig(ground_height_m=0.5)
+    with pytest.raises(InputError, match="ground_height_std_m"):
+        RackTrackerConfig(ground_height_m=-2.0, ground_height_std_m=0.0)

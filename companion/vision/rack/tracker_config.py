@@ -39,7 +39,10 @@ class RackTrackerConfig:
     (with a wrong z_g, bend) but never correct,
     `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
     random walk allowed to z_g; `ground_trust_frames` the frames a new ground point's rows take to
-    reach full weight (1 = at once); `edge_tangent_px` > 0 averages each
+    reach full weight (1 = at once); `ground_height_m` (rack z, m; None = estimated online from a rough
+    first guess) the ground's height when known (the rack's support height above grade from its drawing,
+    a survey, or a rangefinder), held on every frame with `ground_height_std_m`: flying along the pipes
+    with no texture in view the ground's flow gives the speed over its depth only; `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
     averages out); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
@@ -112,6 +115,8 @@ class RackTrackerConfig:
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
     ground_trust_frames: int = 10
+    ground_height_m: float | None = None
+    ground_height_std_m: float = 0.05
     edge_profile_rate: float = 0.1
     edge_tangent_px: float = 0.0
     blur_sigma_px: float = 0.0
@@ -176,6 +181,9 @@ class RackTrackerConfig:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
         if self.relock_after_frames < 0:
             raise InputError(f"relock_after_frames: must be >= 0, got {self.relock_after_frames}")
+        if self.ground_height_m is not None and not (np.isfinite(self.ground_height_m) and self.ground_height_m < 0.0):
+            raise InputError(f"ground_height_m: the ground lies below the pipes' support plane (rack z < 0), "
+                             f"got {self.ground_height_m}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
         if self.max_texture_points < 0:
@@ -183,7 +191,8 @@ class RackTrackerConfig:
         if not -1.0 <= self.template_min_ncc <= 1.0:
             raise InputError(f"template_min_ncc: must be in [-1, 1], got {self.template_min_ncc}")
         for name in ("nu_px", "gate_px", "prior_translation_m", "prior_rotation_rad", "prior_gap_m", "inlier_px",
-                     "relock_prior_translation_m", "relock_prior_rotation_rad", "relock_max_jump_sigma", "gap_walk_m"):
+                     "relock_prior_translation_m", "relock_prior_rotation_rad", "relock_max_jump_sigma", "gap_walk_m",
+                     "ground_height_std_m"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
 
