@@ -88,12 +88,21 @@ class TrackerSolve(TrackerState):
             anchor_info = anchor_info.copy()
             anchor_info[6:i_bias] = self._scale2 * cfg.covariance_inflation / self._gaps_var
         if has_ground:
-            prior, anchor_info = prior.copy(), np.array(anchor_info)
+            prior, anchor_info = prior.copy(), anchor_info.copy()
             prior[i_z] = 1.0
             # In the solver's information scale (the posterior is inv(H) * scale2 * inflation, see the
             # covariance): with 1 / var here a frame that does not observe z_g multiplied its variance
             # by scale2 * inflation (~2-4 on textured grounds), and z_g wandered off by metres.
             anchor_info[i_z] = self._scale2 * cfg.covariance_inflation / self._z_g_var
+        ground_trust = None  # per ground row, fixed over the iterations
+        if has_ground and ground is not None and cfg.ground_trust_frames > 1 and \
+                np.count_nonzero(ground[3] >= cfg.ground_trust_frames - 1) >= 3:
+            # A new point earns its weight by fitting the plane for `ground_trust_frames` frames: corners
+            # on an unmodelled structure nearer the camera (an overhead beam) move faster than the
+            # ground's and, many at once as it comes into view, carried the along-pipe position with
+            # them (stress bench, docs/rack.md). Only while three points have earned it: after a lost
+            # stretch (all points new) holding them all back let the along-pipe position drift.
+            ground_trust = np.repeat(np.minimum(1.0, (ground[3] + 1.0) / cfg.ground_trust_frames), 2)
         pipes = self._pipe_arrays(gaps)
         # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
         tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
@@ -170,14 +179,8 @@ class TrackerSolve(TrackerState):
             w[:n_w] = robust_weights(r[:n_w], cfg.robust, cfg.nu_px, gate)
             w[n_edge:n_et] *= cfg.texture_weight
             w[n_et:n_w] *= cfg.ground_weight
-            if has_ground and ground is not None and cfg.ground_trust_frames > 1 and \
-                    np.count_nonzero(ground[3] >= cfg.ground_trust_frames - 1) >= 3:
-                # A new point earns its weight by fitting the plane for `ground_trust_frames` frames: corners
-                # on an unmodelled structure nearer the camera (an overhead beam) move faster than the
-                # ground's and, many at once as it comes into view, carried the along-pipe position with
-                # them (stress bench, docs/rack.md). Only while three points have earned it: after a lost
-                # stretch (all points new) holding them all back let the along-pipe position drift.
-                w[n_et:n_w] *= np.repeat(np.minimum(1.0, (ground[3] + 1.0) / cfg.ground_trust_frames), 2)
+            if ground_trust is not None:
+                w[n_et:n_w] *= ground_trust
             if self._gravity is not None:
                 # Gravity rows, not robustified: information 1/std^2 in the solver's scale (the
                 # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
