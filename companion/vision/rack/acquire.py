@@ -31,6 +31,7 @@ from companion.vision.rack.acquire_decide import credible, decide, distinct, goo
 from companion.vision.rack.acquire_lines import (
     LimbClusters,
     Segments,
+    crossing_y_candidates,
     detect_segments,
     direction_candidates,
     downscale,
@@ -57,7 +58,6 @@ from companion.vision.rack.acquire_types import (
 from companion.vision.rack.acquire_verify import (
     EdgeCheck,
     check_poses,
-    crossing_y_candidates,
     pose_covariance,
     subset_pipes,
 )

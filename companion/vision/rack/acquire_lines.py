@@ -21,6 +21,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.model import PipeArrays
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
 GrayImage = np.ndarray[Any, np.dtype[np.uint8]]
@@ -259,3 +260,55 @@ def visible_length_px(camera: PinholeCamera, limbs: LimbClusters, theta: FloatAr
     hi = np.nanmax(np.where(inside[..., None], P, -np.inf), axis=1)
     length = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
     return np.asarray(np.where(np.isfinite(length), length, 0.0))
+
+
+def crossing_y_candidates(
+    seg: Segments,
+    T_rack_cam: FloatArray,
+    pipes: PipeArrays,
+    extra_index: Any,
+    y_lo_m: float,
+    y_hi_m: float,
+    angle_tol_rad: float,
+    merge_m: float,
+    max_candidates: int,
+) -> FloatArray:
+    """Camera y positions (rack frame, m) at which a segment would be a limb of an extra pipe.
+
+    A limb plane (unit normal n, rack frame) through the camera centre o = (x, y, z) is tangent to
+    the pipe with axis point c and radius r when n·(c - o) = ±r: linear in y for the fixed x, z
+    and rotation of the hypothesis. Candidates are voted by segment length within `merge_m`
+    (strongest first; at most `max_candidates`, at least `2 merge_m` apart).
+    """
+    if seg.length_px.size == 0:
+        return np.zeros(0)
+    R = T_rack_cam[:3, :3]
+    o = T_rack_cam[:3, 3]
+    n_r = seg.normal_cam @ R.T  # (N, 3) rack frame
+    ys, ws = [], []
+    for k in np.atleast_1d(np.asarray(extra_index)):
+        e, c, r = pipes.directions[k], pipes.starts[k], float(pipes.radii[k])
+        ok = (np.abs(n_r @ e) < np.sin(angle_tol_rad)) & (np.abs(n_r[:, 1]) > 0.2)
+        if not np.any(ok):
+            continue
+        n = n_r[ok]
+        base = n @ c - n[:, 0] * o[0] - n[:, 2] * o[2]
+        for sgn in (-1.0, 1.0):
+            ys.append((base + sgn * r) / n[:, 1])
+            ws.append(seg.length_px[ok])
+    if not ys:
+        return np.zeros(0)
+    y = np.concatenate(ys)
+    w = np.concatenate(ws)
+    keep = (y >= y_lo_m) & (y <= y_hi_m)
+    y, w = y[keep], w[keep]
+    if y.size == 0:
+        return np.zeros(0)
+    votes = (np.abs(y[:, None] - y[None, :]) <= merge_m).astype(np.float64) @ w
+    out: list[float] = []
+    for i in np.argsort(-votes):
+        if len(out) >= max_candidates:
+            break
+        if all(abs(y[i] - v) >= 2.0 * merge_m for v in out):
+            out.append(float(y[i]))
+    return np.asarray(out)

@@ -6,10 +6,10 @@ iteration), exactly as `RackTracker` does; the rows are the tracker's motion fie
 (`motion.pose_jacobian`) solved by `motion.solve_normal_equations` with `motion.robust_weights`.
 A few iterations with a shrinking search range refine the pose; the verdict is the fraction of
 the predicted limb samples whose edge is found (strong, of the hypothesis' polarity) and agrees
-with the refined pose, overall and per pipe. Along-pipe position y: from the limbs of pipes not
-parallel to rack y (a crossing pipe) when the image shows them, found in closed form from the
-line segments and confirmed by the same edge check. Frames: `T_rack_cam` camera in rack frame;
-twists are right perturbations in the camera frame (v, w) like the tracker's covariance.
+with the refined pose, overall and per pipe (the along-pipe position y from a crossing pipe's
+segments, `acquire_lines.crossing_y_candidates`, is confirmed by the same check). Frames:
+`T_rack_cam` camera in rack frame; twists are right perturbations in the camera frame (v, w) like
+the tracker's covariance.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.geometry import se3
 from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
-from companion.vision.rack.acquire_lines import Segments
 from companion.vision.rack.acquire_samples import sample_limbs_many
 from companion.vision.rack.edges import EdgeMeasurements
 from companion.vision.rack.limbs import LimbSamples
@@ -330,58 +329,6 @@ def up_axis_with_jacobian(T_rack_cam: FloatArray) -> tuple[FloatArray, FloatArra
     J = np.zeros((3, 6))
     J[:, 3:] = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
     return u, J
-
-
-def crossing_y_candidates(
-    seg: Segments,
-    T_rack_cam: FloatArray,
-    pipes: PipeArrays,
-    extra_index: Any,
-    y_lo_m: float,
-    y_hi_m: float,
-    angle_tol_rad: float,
-    merge_m: float,
-    max_candidates: int,
-) -> FloatArray:
-    """Camera y positions (rack frame, m) at which a segment would be a limb of an extra pipe.
-
-    A limb plane (unit normal n, rack frame) through the camera centre o = (x, y, z) is tangent to
-    the pipe with axis point c and radius r when n·(c - o) = ±r: linear in y for the fixed x, z
-    and rotation of the hypothesis. Candidates are voted by segment length within `merge_m`
-    (strongest first; at most `max_candidates`, at least `2 merge_m` apart).
-    """
-    if seg.length_px.size == 0:
-        return np.zeros(0)
-    R = T_rack_cam[:3, :3]
-    o = T_rack_cam[:3, 3]
-    n_r = seg.normal_cam @ R.T  # (N, 3) rack frame
-    ys, ws = [], []
-    for k in np.atleast_1d(np.asarray(extra_index)):
-        e, c, r = pipes.directions[k], pipes.starts[k], float(pipes.radii[k])
-        ok = (np.abs(n_r @ e) < np.sin(angle_tol_rad)) & (np.abs(n_r[:, 1]) > 0.2)
-        if not np.any(ok):
-            continue
-        n = n_r[ok]
-        base = n @ c - n[:, 0] * o[0] - n[:, 2] * o[2]
-        for sgn in (-1.0, 1.0):
-            ys.append((base + sgn * r) / n[:, 1])
-            ws.append(seg.length_px[ok])
-    if not ys:
-        return np.zeros(0)
-    y = np.concatenate(ys)
-    w = np.concatenate(ws)
-    keep = (y >= y_lo_m) & (y <= y_hi_m)
-    y, w = y[keep], w[keep]
-    if y.size == 0:
-        return np.zeros(0)
-    votes = (np.abs(y[:, None] - y[None, :]) <= merge_m).astype(np.float64) @ w
-    out: list[float] = []
-    for i in np.argsort(-votes):
-        if len(out) >= max_candidates:
-            break
-        if all(abs(y[i] - v) >= 2.0 * merge_m for v in out):
-            out.append(float(y[i]))
-    return np.asarray(out)
 
 
 def pose_covariance(check: EdgeCheck, inflation: float, y_std_m: float | None, damping: FloatArray) -> FloatArray:
