@@ -49,3 +49,24 @@ def test_offset_lla_moves_the_sitl_home_by_metres() -> None:
     assert alt == 488.0
     assert math.radians(lat - 47.4) * EARTH_RADIUS_M == pytest.approx(1.0, rel=1e-9)
     assert math.radians(lon - 8.5) * EARTH_RADIUS_M * math.cos(math.radians(47.4)) == pytest.approx(-2.0, rel=1e-9)
+
+
+def test_the_report_says_why_poses_were_withheld_on_the_deck() -> None:
+    """When the start-hint lock cannot be verified (the field appearance on the deck: a shaded limb as dark as
+    the ground), the daemon withholds its poses and the sim's report says so, with the last check's verdict."""
+    from types import SimpleNamespace
+
+    from companion.daemon.hint_check import HintCheck, HintChecker
+    from companion.sim.run import _withheld_reason
+
+    checker = HintChecker()
+    checker.last = HintCheck("no-confident-pose", status="no hypothesis agrees with the image edges")
+    daemon = SimpleNamespace(counters=SimpleNamespace(poses_withheld=0),
+                             pipeline=SimpleNamespace(hint_checker=checker))
+    assert _withheld_reason(daemon) == ""
+    daemon.counters.poses_withheld = 452
+    text = _withheld_reason(daemon)
+    assert "452 withheld" in text and "rack_verify_start" in text
+    assert "no-confident-pose, no hypothesis agrees with the image edges" in text
+    daemon.pipeline = None  # no rack pipeline: the count alone
+    assert "452 withheld" in _withheld_reason(daemon) and "last check" not in _withheld_reason(daemon)

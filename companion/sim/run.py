@@ -164,6 +164,17 @@ def sim_config(out_dir: Path, overrides: dict[str, Any] | None = None) -> Any:
     return parse_config(data, source="<sim_default.toml>")
 
 
+def _withheld_reason(daemon: Any) -> str:
+    """Why the daemon held its rack poses back on the deck, for the report (empty when it did not)."""
+    if daemon.counters.poses_withheld <= 0:
+        return ""
+    checker = None if daemon.pipeline is None else daemon.pipeline.hint_checker
+    last = None if checker is None else checker.last
+    why = "" if last is None else f"; last check: {last.outcome}, {last.status or 'no status'}"
+    return (f"; {daemon.counters.poses_withheld} withheld: the rack lock from the configured start was not verified "
+            f"against the image (vision.rack_verify_start = \"withhold\"{why})")
+
+
 def _progress_line(elapsed_s: float, daemon: Any, truth: Any) -> str:
     ex = daemon.executor
     state = "idle" if ex is None else str(ex.state)
@@ -247,7 +258,7 @@ async def run_sim(options: SimOptions, clock: Clock | None = None, out: Any = No
             ready = daemon.counters.poses_sent >= 10 and ap.ekf_healthy
             if not ready:
                 record.notes.append(f"no healthy vision pose stream before the start ({daemon.counters.poses_sent} "
-                                    "poses sent): the mission was not started")
+                                    "poses sent): the mission was not started" + _withheld_reason(daemon))
             t0 = clock.now()
             record.start_s = t0
             boot_s = clock.now() - ap.elapsed_s
