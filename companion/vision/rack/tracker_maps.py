@@ -106,15 +106,12 @@ class TrackerMaps(TrackerState):
             # The ground lies below the pipes' support plane, and it does not move: a frame's estimate may
             # move z_g by at most half its standard deviation (a few bad ground points, or a roll / slide
             # error leaking into it, otherwise carry it metres within a second: stress bench, p3 fast).
-            z_prev = float(self._z_g) if self._z_g is not None else float(last["z_g"])
-            step = max(0.02, 0.5 * float(np.sqrt(self._z_g_var)))
-            self._z_g = min(float(np.clip(float(last["z_g"]), z_prev - step, z_prev + step)), 0.0)
-            # Posterior variance plus a small random walk (the ground is not flat everywhere).
-            self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
-            if cfg.ground_height_m is not None:
-                # A known ground height is a measurement on every frame, not a start: beams, a deck or
-                # shadows at other depths would otherwise walk the estimate away from it.
-                self._z_g, self._z_g_var = float(cfg.ground_height_m), float(cfg.ground_height_std_m) ** 2
+            if cfg.ground_height_m is None:
+                z_prev = float(self._z_g) if self._z_g is not None else float(last["z_g"])
+                step = max(0.02, 0.5 * float(np.sqrt(self._z_g_var)))
+                self._z_g = min(float(np.clip(float(last["z_g"]), z_prev - step, z_prev + step)), 0.0)
+                # Posterior variance plus a small random walk (the ground is not flat everywhere).
+                self._z_g_var = float(max(cov_full[i_z, i_z], 1e-6)) + cfg.ground_height_walk_m**2
             n_et = int(last["n_et"])
             r_g = last["r_post"][n_et : n_et + 2 * last["ground_uv"].shape[0]].reshape(-1, 2)
             ok = np.linalg.norm(r_g, axis=1) <= cfg.gate_px  # the same gate as the solver's rows
@@ -135,7 +132,9 @@ class TrackerMaps(TrackerState):
             # points that come within the margin of a pipe.
             on = on_ground(keep_uv, mask)
             keep_uv, keep_age = keep_uv[on], keep_age[on]
-        if self._z_g is None and cfg.ground_height_m is not None:
+        if cfg.ground_height_m is not None:
+            # A known ground height is a measurement on every frame, not a start: beams, a deck or
+            # shadows at other depths would otherwise walk the estimate away from it.
             self._z_g, self._z_g_var = float(cfg.ground_height_m), float(cfg.ground_height_std_m) ** 2
         elif self._z_g is None:
             # First guess: the ground twice as far below the pipes' tops as the camera is above them (weak).
