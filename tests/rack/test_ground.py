@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.geometry import se3, so3
-from companion.vision.rack.ground import detect_ground_points, ground_rows, plane_points
+from companion.vision.rack.ground import detect_ground_points, ground_mask, ground_rows, plane_points
 from tests.numdiff import central_jacobian
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
@@ -51,6 +52,33 @@ def test_ground_corners_are_found_outside_the_pipes_only(rng: np.random.Generato
     assert uv.shape[0] == 50
     assert not np.any((uv[:, 0] > 100 - 6) & (uv[:, 0] < 180 + 6))  # the pipe and a 6 px margin around it
     assert np.all((uv >= 10) & (uv <= np.array([349, 229])))
+
+
+def test_ground_corners_with_a_floor_are_opencvs_then_the_floor(rng: np.random.Generator) -> None:
+    # The one-pass detector (`corners.strong_corners`) must give exactly the former two passes: OpenCV's
+    # Shi-Tomasi corners (quality 0.01) in the mask, the floor at each, the first max_new kept.
+    for k in range(12):
+        img = rng.uniform(0, 255, (240, 360)) if k % 3 else np.full((240, 360), 120.0) + rng.normal(0, 3, (240, 360))
+        if k % 3 == 0:
+            for _ in range(30):
+                centre = (int(rng.integers(5, 355)), int(rng.integers(5, 235)))
+                cv2.circle(img, centre, 2, float(rng.uniform(30, 90)), -1)
+        gray = np.clip(cv2.GaussianBlur(img, (0, 0), 1.0 + 0.2 * k), 0, 255).astype(np.uint8)
+        pipes = [np.array([[60.0, 0.0], [110.0, 0.0], [130.0, 239.0], [70.0, 239.0]]) + [90.0 * j, 0.0]
+                 for j in range(k % 3)]
+        existing = rng.uniform([0, 0], [360, 240], (int(rng.integers(0, 20)), 2))
+        max_new, min_d, ratio = int(rng.integers(3, 60)), float(rng.uniform(5.0, 15.0)), float(rng.choice([1.5, 4.0]))
+        got = detect_ground_points(gray, pipes, existing, max_new, min_d, 6.0, ratio)
+        mask = ground_mask(gray.shape, pipes, 6.0)
+        for q in existing:
+            cv2.circle(mask, (round(q[0]), round(q[1])), int(min_d), 0, -1)
+        found = cv2.goodFeaturesToTrack(gray, maxCorners=2 * max_new, qualityLevel=0.01, minDistance=min_d,
+                                        mask=mask, blockSize=7)
+        want = np.zeros((0, 2)) if found is None else found.reshape(-1, 2).astype(np.float64)
+        ev = cv2.cornerMinEigenVal(gray, 7, ksize=3)
+        c = np.rint(want).astype(np.intp)
+        want = want[ev[c[:, 1], c[:, 0]] >= ratio * float(np.median(ev[mask > 0]))][:max_new]
+        np.testing.assert_array_equal(got, want)
 
 
 def test_ground_points_earn_their_weight_frame_by_frame() -> None:

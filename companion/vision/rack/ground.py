@@ -19,6 +19,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.corners import strong_corners
 from companion.vision.rack.limbs import LimbLines, clip_lines_to_view, limb_lines
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import pose_jacobian
@@ -149,6 +150,12 @@ def detect_ground_points(
         cv2.circle(mask, (round(q[0]), round(q[1])), int(min_distance_px), 0, -1)
     if not np.any(mask):
         return np.zeros((0, 2))
+    # With a floor: one eigenvalue pass, only the corners above it ordered and thinned (`corners.py`; the
+    # same corners as OpenCV's detector followed by the floor).
+    strong = strong_corners(gray, mask, int(2 * max_new), float(min_distance_px), 0.01, 7, min_corner_ratio) \
+        if min_corner_ratio > 0 else None
+    if strong is not None:
+        return strong.astype(np.float64)[:max_new]
     corners = cv2.goodFeaturesToTrack(gray, maxCorners=int(2 * max_new), qualityLevel=0.01,
                                       minDistance=float(min_distance_px), mask=mask, blockSize=7)
     if corners is None:
