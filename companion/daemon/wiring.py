@@ -19,15 +19,16 @@ __all__ = ["DAEMON_RACK_TRACKER", "Wiring"]
 # The library's defaults since 2026-11-26 are those of the field-robustness work of issue #14 (stress
 # benchmark, vision only); the daemon keeps the tracker settings it has flown on the real ArduCopter
 # SITL and in `companion sim`, where the filter (IMU, re-seeds) covers what they add: no ground points
-# (in the closed loop they degraded the along-pipe estimate, docs/rack.md), the wide first search, the
-# gradient-peak edges, no re-lock of its own (the daemon re-seeds the tracker from its filter).
+# (in the closed loop they degraded the along-pipe estimate, docs/rack.md), the wide first search, no
+# re-lock of its own (the daemon re-seeds the tracker from its filter). Since 2026-11-26 evening it takes
+# the library's edge model (silhouette fit of shaded limbs, learnt edge profile, 3 px residual gate): with
+# the gradient-peak edges and a 2 px gate its tracker rejected one frame in five of the field appearance
+# at the TRUE pose (bench/rack_acquire.py, tracker_from_truth_rate 80.9 %) and `companion sim --appearance
+# field` aborted at action 5; the default appearance flies as before (docs/acquire.md).
 DAEMON_RACK_TRACKER: dict[str, Any] = {
     "ground_points": 0,
     "init_search_range_m": 0.25,
-    "max_residual_px": 2.0,
     "texture_min_corner_ratio": 0.0,
-    "edge_profile_px": 0,
-    "edge_silhouette_px": 0,
     "relock_after_frames": 0,
     "unobserved_velocity_tau_s": 0.0,
     "gap_scan": False,
