@@ -218,13 +218,19 @@ def first_tracked_frame(model: RackModel, T_start: np.ndarray, img: np.ndarray, 
     t1 = time.perf_counter()
     est = tr.track(img, 0.0, **attitude_prior(prior))
     track_ms = (time.perf_counter() - t1) * 1e3
-    E = se3.inverse(T_true) @ est.T_rack_cam
-    d = est.T_rack_cam[:3, 3] - T_true[:3, 3]
+    err = pose_error(est.T_rack_cam, T_true)
+    return {"track_ms": track_ms, **err, "track_ok": bool(est.ok), "track_status": est.status,
+            "locked": bool(est.ok and err["pose_within"])}
+
+
+def pose_error(T_rack_cam: np.ndarray, T_true: np.ndarray) -> dict[str, Any]:
+    """Error of a pose against the truth (rack frame, m / deg) and whether it is within the bar: 3 cm in x and z,
+    1 deg in attitude."""
+    E = se3.inverse(T_true) @ T_rack_cam
+    d = T_rack_cam[:3, 3] - T_true[:3, 3]
     rot_deg = float(np.rad2deg(np.linalg.norm(so3.log(E[:3, :3]))))
-    within = bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)
-    return {"track_ms": track_ms, "dx_m": float(d[0]), "dz_m": float(d[2]), "rot_deg": rot_deg,
-            "y_err_m": float(d[1]), "track_ok": bool(est.ok), "track_status": est.status, "pose_within": within,
-            "locked": bool(est.ok and within)}
+    return {"dx_m": float(d[0]), "dz_m": float(d[2]), "rot_deg": rot_deg, "y_err_m": float(d[1]),
+            "pose_within": bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)}
 
 
 def attitude_prior(prior: AcquisitionPrior) -> dict[str, Any]:

@@ -43,7 +43,6 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import rack_acquire as ra  # noqa: E402
 
 from companion.daemon.wiring import DAEMON_RACK_TRACKER  # noqa: E402
-from companion.geometry import se3, so3  # noqa: E402
 from companion.vision.rack import RackTracker, RackTrackerConfig  # noqa: E402
 
 MODES = {"one": (False, 1), "settle": (False, 9), "loose": (True, 3)}  # (loose reset prior, frames)
@@ -61,12 +60,9 @@ def run_view(case: dict[str, Any], cfg: RackTrackerConfig, mode: str, with_prior
     prior = ra.attitude_prior(case["prior"]) if with_prior else {}
     for k in range(frames):
         est = tr.track(case["img"], k / 25.0, **prior)
-    E = se3.inverse(T_true) @ est.T_rack_cam
-    d = est.T_rack_cam[:3, 3] - T_true[:3, 3]
-    rot_deg = float(np.rad2deg(np.linalg.norm(so3.log(E[:3, :3]))))
-    within = bool(abs(d[0]) <= 0.03 and abs(d[2]) <= 0.03 and rot_deg <= 1.0)
-    return {"dx_cm": float(d[0]) * 100, "dz_cm": float(d[2]) * 100, "rot_deg": rot_deg, "ok": bool(est.ok),
-            "within": bool(est.ok and within)}
+    err = ra.pose_error(est.T_rack_cam, T_true)
+    return {"dx_cm": err["dx_m"] * 100, "dz_cm": err["dz_m"] * 100, "rot_deg": err["rot_deg"], "ok": bool(est.ok),
+            "within": bool(est.ok and err["pose_within"])}
 
 
 def rates(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
