@@ -119,3 +119,15 @@ def test_inner_windows_equal_the_direct_normalisation_bit_for_bit() -> None:
         fast = _inner_windows(prof, M, n_cand)
         assert fast.flags.c_contiguous and fast.dtype == np.float32
         np.testing.assert_array_equal(fast, direct)
+
+
+def test_distance_prior_prefers_the_limb_over_a_stronger_edge_a_few_pixels_out() -> None:
+    # A faint limb step (40 grey levels) at x = 100 and a strong ground step (120) of the same sign at x = 105.
+    img = np.maximum(_step_image(100.0, 60.0, 100.0), _step_image(105.0, 60.0, 180.0))
+    uv = np.array([[100.0, 30.0]])
+    n = np.array([[1.0, 0.0]])
+    flat = search_edges(img, uv, n, np.array([0.0]), 12, 5.0)  # the default: a Gaussian as wide as the range
+    near = search_edges(img, uv, n, np.array([0.0]), 12, 5.0, prior_sigma_px=2.0)
+    assert flat.found[0] and near.found[0]
+    assert abs(flat.offset_px[0] - 5.0) < 0.6  # the strongest edge in range
+    assert abs(near.offset_px[0]) < 0.2  # the nearest one that is strong enough for its distance

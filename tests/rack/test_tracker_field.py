@@ -131,3 +131,38 @@ def test_estimated_gaps_remember_the_frames_before() -> None:
     assert free > 0.02
     assert held < 0.8 * free
     assert _gap_step_after_a_shifted_frame(1e-5) < 0.1 * free
+
+
+def test_a_stronger_ground_edge_beside_a_limb_loses_to_the_limb() -> None:
+    """A dark gutter on the ground 6-10 px outside the outer limbs (a shadow, a drain): its edge is stronger
+    than the limb's. With the search's distance prior (`edge_distance_sigma_px`, default 4 px) the tracker
+    keeps the limbs; with the prior as wide as the search range it slid onto the gutter."""
+    from companion.vision.rack.limbs import sample_limbs
+
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1] * 2, length=10.0)
+    scene = RackScene(model, seed=3)
+    T = se3.make(so3.exp([0.0, 0.0, 0.1]) @ R_DOWN, [0.55, 4.0, 2.5])
+    rng = np.random.default_rng(0)
+    s = sample_limbs(T, CAM, model.pipe_arrays(), 32)
+    vv, uu = np.mgrid[0 : CAM.height, 0 : CAM.width]
+    frames = []
+    for _ in range(4):
+        img = scene.render(T, CAM, noise_std=3.0, rng=rng).astype(np.float64)
+        for limb in (0, 5):  # the outer limbs of the outer pipes
+            on = s.limb == limb
+            p, n = s.uv[on].mean(axis=0), s.normal_px[on][0]
+            d = (uu - p[0]) * n[0] + (vv - p[1]) * n[1]
+            img[(d >= 6.0) & (d <= 10.0)] = 0.0
+        frames.append(img.astype(np.uint8))
+    errors = {}
+    for sigma in (0.0, RackTrackerConfig().edge_distance_sigma_px):
+        tr = RackTracker(model, CAM, RackTrackerConfig(edge_distance_sigma_px=sigma, ground_points=0,
+                                                        max_texture_points=0))
+        tr.reset(T)
+        for k, img in enumerate(frames):
+            est = tr.track(img, 0.04 * k)
+        e = se3.log(se3.inverse(T) @ est.T_rack_cam)
+        errors[sigma] = (float(np.linalg.norm(est.T_rack_cam[:3, 3] - T[:3, 3])),
+                         float(np.degrees(np.linalg.norm(e[3:]))))
+    assert errors[0.0][0] > 0.05  # off: the limbs went to the gutter
+    assert errors[4.0][0] < 0.02 and errors[4.0][1] < 0.5, errors

@@ -68,6 +68,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._gaps_var = np.full(self._n_gaps, np.inf)
         self._edge_bias = np.zeros(2)
         self._scale2 = 0.5
+        self._scale2_measured = False
         self._up_rack = None
         self._reset_ground()
         self._polarity[:] = 0.0
@@ -254,7 +255,12 @@ class RackTracker(TrackerSolve, TrackerMaps):
             if n_gap:
                 self._gaps_var = np.maximum(np.diag(cov_carry)[6 : 6 + n_gap], 1e-10) + cfg.gap_walk_m**2
             self._edge_bias = last["bias"]
-            self._scale2 = scale2
+            # The next frames weigh their attitude prior with this scale: on a first frame its wide gate let
+            # in outliers that doubled it or more (the covariance keeps them, conservatively), so only the
+            # rows within the tracking gate count here (every row with weight on later frames).
+            inside = w[:n_rows] * (np.abs(last["r"][:n_rows]) <= cfg.gate_px)
+            self._scale2 = float(inside @ (r_post[:n_rows] ** 2)) / max(int(np.count_nonzero(inside)) - x.size, 1)
+            self._scale2_measured = True
             if self._gravity is not None:
                 self._up_rack = T[:3, :3] @ self._gravity[0][2, :]
             self._initialized = True

@@ -44,7 +44,12 @@ class RackTrackerConfig:
     a survey, or a rangefinder), held on every frame with `ground_height_std_m`: flying along the pipes
     with no texture in view the ground's flow gives the speed over its depth only; `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
-    averages out); `blur_sigma_px` an optional Gaussian pre-blur;
+    averages out); `edge_distance_sigma_px` > 0 scales each candidate's score by a Gaussian of its
+    distance from the rendered limb with this standard deviation (px), from each frame's second iteration
+    on and at the tracking range only (0 = a Gaussian as wide as the range, nearly flat): a stronger ground
+    or shadow edge a few pixels outside a limb then loses to the limb, while the first iteration still
+    follows a motion the prediction missed (over a crossing pipe, along the pipes, edges move by several
+    pixels); `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
     Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
@@ -119,6 +124,7 @@ class RackTrackerConfig:
     ground_height_std_m: float = 0.05
     edge_profile_rate: float = 0.1
     edge_tangent_px: float = 0.0
+    edge_distance_sigma_px: float = 4.0
     blur_sigma_px: float = 0.0
     polarity_rate: float = 0.1
     margin_px: float = 6.0
@@ -184,6 +190,8 @@ class RackTrackerConfig:
         if self.ground_height_m is not None and not (np.isfinite(self.ground_height_m) and self.ground_height_m < 0.0):
             raise InputError(f"ground_height_m: the ground lies below the pipes' support plane (rack z < 0), "
                              f"got {self.ground_height_m}")
+        if not (np.isfinite(self.edge_distance_sigma_px) and self.edge_distance_sigma_px >= 0.0):
+            raise InputError(f"edge_distance_sigma_px: must be >= 0 (0 = off), got {self.edge_distance_sigma_px}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
         if self.max_texture_points < 0:

@@ -122,6 +122,7 @@ class TrackerSolve(TrackerState):
                               3.0 * (self._start_std[0] + self._start_std[1] * depth),
                               cfg.init_search_range_gaps_m if cfg.estimate_gaps and not self._gaps_scanned else 0.0)
                 init_px = min(cam.fx * range_m / depth, float(cfg.init_search_range_px))
+        dist_sigma = cfg.edge_distance_sigma_px if cfg.edge_distance_sigma_px > 0 else None
         for it in range(n_iter):
             it_done = it + 1
             if first:
@@ -138,6 +139,7 @@ class TrackerSolve(TrackerState):
                 img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
                 thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
             meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
+                                prior_sigma_px=dist_sigma if it > 0 and rng_px <= cfg.search_range_px else None,
                                 tangent_offset_px=cfg.edge_tangent_px,
                                 inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
             offset_px = meas.offset_px
@@ -186,6 +188,16 @@ class TrackerSolve(TrackerState):
                 # covariance is inv(H) * scale2 * inflation, so H_prior = scale2 * inflation / std^2).
                 r[n_w:], A[n_w:, :6] = gravity_rows(T[:3, :3], self._gravity[0])
                 w[n_w:] = self._gravity[1]
+                if not self._scale2_measured:
+                    # No frame accepted since the reset: its scale (0.5) is a guess, several times the
+                    # ~0.1 of a converged solve, and it made the prior outweigh the limbs on the first
+                    # frame (a 1 deg prior error pulled roll and slide off: bench/rack_acquire_ceiling.py).
+                    # Weigh the prior with this frame's own weighted residual variance instead, over the
+                    # rows within the tracking gate (the first frame's wide search lets in far outliers).
+                    r_d = r[:n_w]
+                    w_d = np.where(np.abs(r_d) <= cfg.gate_px, w[:n_w], 0.0)
+                    dof = max(int(np.count_nonzero(w_d)) - 6, 1)
+                    w[n_w:] *= float(w_d @ (r_d * r_d)) / dof / self._scale2
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
             T = T @ se3.exp_one(x[:6])

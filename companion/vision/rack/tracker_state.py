@@ -68,6 +68,9 @@ class TrackerState:
         # Weighted residual variance of the last accepted frame (px^2 in the IRLS weights' units):
         # converts an attitude prior's standard deviation into the solver's information scale.
         self._scale2 = 0.5
+        # False from a reset until a frame is accepted: 0.5 is then a guess, and the solve measures the
+        # scale on the frame itself before it weighs an attitude prior with it (`_solve`).
+        self._scale2_measured = False
         self._gravity: tuple[FloatArray, float] | None = None
         # Filtered gravity ("up") of the attitude priors, carried in the rack frame through the
         # estimated attitude (see `_fuse_gravity`), and its variance (rad^2).
