@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from companion.camera import PinholeCamera
 from companion.geometry import se3, so3
@@ -140,3 +141,14 @@ def test_gravity_rows_match_central_differences(rng: np.random.Generator) -> Non
     yawed = so3.exp([0.0, 0.0, 0.3]) @ T[:3, :3]
     assert np.abs(gravity_rows(T[:3, :3], yawed)[0]).max() < 1e-12
     assert np.linalg.norm(r0) > 1e-3
+
+
+def test_gated_residual_variance_counts_only_rows_inside_the_gate_with_weight() -> None:
+    from companion.vision.rack.motion import gated_residual_variance
+
+    w = np.array([1.0, 0.5, 0.0, 1.0, 2.0])
+    r_gate = np.array([0.5, -1.0, 0.2, 9.0, 2.0])  # row 3 outside a 3 px gate, row 2 without weight
+    r = np.array([0.4, -0.8, 5.0, 7.0, 1.0])
+    expected = (1.0 * 0.16 + 0.5 * 0.64 + 2.0 * 1.0) / (3 - 1)
+    assert gated_residual_variance(w, r_gate, r, 3.0, 1) == pytest.approx(expected)
+    assert gated_residual_variance(w, r_gate, r, 3.0, 6) == pytest.approx(expected * 2)  # at least one dof

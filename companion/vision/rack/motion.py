@@ -70,6 +70,14 @@ def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None
     return np.asarray(w, dtype=np.float64)
 
 
+def gated_residual_variance(w: FloatArray, r_gate: FloatArray, r: FloatArray, gate_px: float, n_free: int) -> float:
+    """Weighted residual variance sum(w r^2) / (rows - n_free) over the rows whose `r_gate` (px) lies within
+    `gate_px` and whose weight `w` is not zero (at least one degree of freedom): the solver's residual scale
+    (px^2 in the IRLS weights' units) without the far outliers a wide first search lets in."""
+    inside = np.where(np.abs(r_gate) <= gate_px, w, 0.0)
+    return float(inside @ (r * r)) / max(int(np.count_nonzero(inside)) - n_free, 1)
+
+
 def solve_normal_equations(
     A: FloatArray,
     r: FloatArray,

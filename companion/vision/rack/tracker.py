@@ -25,6 +25,7 @@ from companion.geometry import se3, so3
 from companion.vision.rack.gap_scan import scan_gaps
 from companion.vision.rack.limbs import occluded
 from companion.vision.rack.motion import (
+    gated_residual_variance,
     information_condition,
 )
 from companion.vision.rack.texture import TextureMap, track_points
@@ -258,8 +259,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
             # The next frames weigh their attitude prior with this scale: on a first frame its wide gate let
             # in outliers that doubled it or more (the covariance keeps them, conservatively), so only the
             # rows within the tracking gate count here (every row with weight on later frames).
-            inside = w[:n_rows] * (np.abs(last["r"][:n_rows]) <= cfg.gate_px)
-            self._scale2 = float(inside @ (r_post[:n_rows] ** 2)) / max(int(np.count_nonzero(inside)) - x.size, 1)
+            self._scale2 = gated_residual_variance(w[:n_rows], last["r"][:n_rows], r_post[:n_rows], cfg.gate_px,
+                                                   x.size)
             self._scale2_measured = True
             if self._gravity is not None:
                 self._up_rack = T[:3, :3] @ self._gravity[0][2, :]

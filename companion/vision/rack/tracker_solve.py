@@ -19,6 +19,7 @@ from companion.vision.rack.limbs import LimbSamples, sample_limbs
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import (
     gap_jacobian,
+    gated_residual_variance,
     gravity_rows,
     median_1d,
     pose_jacobian,
@@ -195,9 +196,7 @@ class TrackerSolve(TrackerState):
                     # Weigh the prior with this frame's own weighted residual variance instead, over the
                     # rows within the tracking gate (the first frame's wide search lets in far outliers).
                     r_d = r[:n_w]
-                    w_d = np.where(np.abs(r_d) <= cfg.gate_px, w[:n_w], 0.0)
-                    dof = max(int(np.count_nonzero(w_d)) - 6, 1)
-                    w[n_w:] *= float(w_d @ (r_d * r_d)) / dof / self._scale2
+                    w[n_w:] *= gated_residual_variance(w[:n_w], r_d, r_d, cfg.gate_px, 6) / self._scale2
             x, H_data, _ = solve_normal_equations(A, r, w, prior, anchor_info, -moved)
             moved += x
             T = T @ se3.exp_one(x[:6])
