@@ -131,3 +131,55 @@ def test_distance_prior_prefers_the_limb_over_a_stronger_edge_a_few_pixels_out()
     assert flat.found[0] and near.found[0]
     assert abs(flat.offset_px[0] - 5.0) < 0.6  # the strongest edge in range
     assert abs(near.offset_px[0]) < 0.2  # the nearest one that is strong enough for its distance
+
+
+def _grating_beyond_a_shaded_limb() -> np.ndarray:
+    # Pale cladding falling to a shaded limb (60) at x = 100, a dark grating bar (20) from 100 to 103 and
+    # a bright one (150) beyond: the limb's step (60 -> 20) is weaker than the bar's (20 -> 150) 3 px out,
+    # and of the other sign (with both polarities accepted, as on a limb whose contrast changes sign).
+    x = np.arange(200, dtype=np.float64)
+    row = np.where(x < 100, 60.0 + 3.0 * np.clip(100 - x, 0, 25), np.where(x < 103, 20.0, 150.0))
+    return np.asarray(cv2.GaussianBlur(np.tile(row, (40, 1)).astype(np.float32), (0, 0), 0.8))
+
+
+def test_innermost_edge_takes_the_limb_before_a_stronger_grating_edge() -> None:
+    img = _grating_beyond_a_shaded_limb()
+    uv = np.array([[100.0, 20.0]])
+    n = np.array([[1.0, 0.0]])  # outward: from the pipe to the ground
+    strongest = search_edges(img, uv, n, np.array([0.0]), 8, 5.0)
+    inner = search_edges(img, uv, n, np.array([0.0]), 8, 5.0, innermost_ratio=0.3)
+    assert strongest.found[0] and inner.found[0]
+    assert abs(strongest.offset_px[0] - 2.5) < 0.6  # the grating's bright bar
+    assert abs(inner.offset_px[0] + 0.5) < 0.6  # the limb (the step between pixels 99 and 100)
+    # Too high a ratio for the limb's share of the best score: the strongest edge again.
+    high = search_edges(img, uv, n, np.array([0.0]), 8, 5.0, innermost_ratio=0.95)
+    np.testing.assert_allclose(high.offset_px, strongest.offset_px)
+
+
+def test_innermost_edge_leaves_samples_with_a_learnt_profile_alone() -> None:
+    img = _grating_beyond_a_shaded_limb()
+    uv = np.array([[100.0, 20.0], [100.0, 20.0]])
+    n = np.array([[1.0, 0.0], [1.0, 0.0]])
+    # The first sample's reference is the profile just inside the grating's edge (as if learnt there), the
+    # second has none: only the second one takes the innermost candidate.
+    at_bar = search_edges(img, np.array([[103.0, 20.0]]), n[:1], np.array([0.0]), 1, 5.0, inner_ref=np.zeros((1, 8)))
+    ref = np.vstack([at_bar.inner, np.zeros((1, 8))])
+    both = search_edges(img, uv, n, np.zeros(2), 8, 5.0, inner_ref=ref, innermost_ratio=0.3)
+    assert both.found.all()
+    assert abs(both.offset_px[0] - 2.5) < 0.6
+    assert abs(both.offset_px[1] + 0.5) < 0.6
+
+
+def test_innermost_edge_ignores_a_maximum_at_the_end_of_the_range() -> None:
+    # A weaker step (60 grey levels) 4 px inside the limb's (80) whose gradient peaks at the inner end of a
+    # 4 px range: cut off there (its true peak may lie beyond), it is not a candidate; the limb is.
+    x = np.arange(200)
+    row = np.where(x <= 95, 60.0, np.where(x < 100, 120.0, 200.0))
+    img = np.tile(row, (40, 1)).astype(np.float32)
+    uv = np.array([[100.0, 20.0]])
+    n = np.array([[1.0, 0.0]])
+    plain = search_edges(img, uv, n, np.array([1.0]), 4, 5.0)
+    inner = search_edges(img, uv, n, np.array([1.0]), 4, 5.0, innermost_ratio=0.1)
+    assert plain.found[0] and inner.found[0]
+    assert abs(plain.offset_px[0] + 0.5) < 0.6
+    np.testing.assert_allclose(inner.offset_px, plain.offset_px)

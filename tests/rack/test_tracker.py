@@ -202,3 +202,10 @@ def test_edge_distance_sigma_must_not_be_negative() -> None:
     with pytest.raises(InputError, match="edge_distance_sigma_px"):
         RackTrackerConfig(edge_distance_sigma_px=-1.0)
     RackTrackerConfig(edge_distance_sigma_px=0.0)  # off
+
+
+@pytest.mark.parametrize("ratio", [-0.1, 1.5, float("nan")])
+def test_edge_innermost_ratio_must_be_a_fraction(ratio: float) -> None:
+    with pytest.raises(InputError, match="edge_innermost_ratio"):
+        RackTrackerConfig(edge_innermost_ratio=ratio)
+    RackTrackerConfig(edge_innermost_ratio=0.0)  # off

@@ -135,8 +135,9 @@ def test_estimated_gaps_remember_the_frames_before() -> None:
 
 def test_a_stronger_ground_edge_beside_a_limb_loses_to_the_limb() -> None:
     """A dark gutter on the ground 6-10 px outside the outer limbs (a shadow, a drain): its edge is stronger
-    than the limb's. With the search's distance prior (`edge_distance_sigma_px`, default 4 px) the tracker
-    keeps the limbs; with the prior as wide as the search range it slid onto the gutter."""
+    than the limb's. With the search's distance prior (`edge_distance_sigma_px`, default 4 px) or its
+    innermost-edge rule (`edge_innermost_ratio`, default 0.6) the tracker keeps the limbs; with neither
+    (the prior as wide as the search range, the strongest edge) it slid onto the gutter."""
     from companion.vision.rack.limbs import sample_limbs
 
     model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1] * 2, length=10.0)
@@ -155,15 +156,16 @@ def test_a_stronger_ground_edge_beside_a_limb_loses_to_the_limb() -> None:
             img[(d >= 6.0) & (d <= 10.0)] = 0.0
         frames.append(img.astype(np.uint8))
     errors = {}
-    default = RackTrackerConfig().edge_distance_sigma_px
-    for sigma in (0.0, default):
-        tr = RackTracker(model, CAM, RackTrackerConfig(edge_distance_sigma_px=sigma, ground_points=0,
-                                                        max_texture_points=0))
+    sigma, ratio = RackTrackerConfig().edge_distance_sigma_px, RackTrackerConfig().edge_innermost_ratio
+    for key in ((0.0, 0.0), (sigma, 0.0), (0.0, ratio), (sigma, ratio)):
+        tr = RackTracker(model, CAM, RackTrackerConfig(edge_distance_sigma_px=key[0], edge_innermost_ratio=key[1],
+                                                        ground_points=0, max_texture_points=0))
         tr.reset(T)
         for k, img in enumerate(frames):
             est = tr.track(img, 0.04 * k)
         e = se3.log(se3.inverse(T) @ est.T_rack_cam)
-        errors[sigma] = (float(np.linalg.norm(est.T_rack_cam[:3, 3] - T[:3, 3])),
-                         float(np.degrees(np.linalg.norm(e[3:]))))
-    assert errors[0.0][0] > 0.05  # off: the limbs went to the gutter
-    assert errors[default][0] < 0.02 and errors[default][1] < 0.5, errors
+        errors[key] = (float(np.linalg.norm(est.T_rack_cam[:3, 3] - T[:3, 3])),
+                       float(np.degrees(np.linalg.norm(e[3:]))))
+    assert errors[(0.0, 0.0)][0] > 0.05, errors  # neither: the limbs went to the gutter
+    for key in ((sigma, 0.0), (0.0, ratio), (sigma, ratio)):
+        assert errors[key][0] < 0.02 and errors[key][1] < 0.5, errors

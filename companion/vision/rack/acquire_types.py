@@ -33,14 +33,17 @@ class AcquisitionConfig:
     direction. Verification (`acquire_verify`): at most `max_checked` proposals are checked,
     those whose profile score reaches `check_score_ratio` times the best's, one refinement
     iteration per entry of `check_ranges_px` (edge search ranges), and the contenders get the
-    further iterations `polish_ranges_px`; `samples_per_limb`, `edge_threshold`, `inlier_px` as
-    the tracker's; `margin_px` the image border; `attitude_std_rad` the roll / pitch error and
-    `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height
-    against the edges. Decision: a hypothesis is credible when at least `min_agree_fraction` of
-    its limb samples agree, its residual is below `max_residual_px`, `min_pipes` pipes have both
-    limbs in view with at least `min_pipe_agree` of each limb's samples agreeing (and a run of
-    consecutive agreeing samples over at least `min_limb_run` of the limb), no pipe with
-    both limbs in view has less than `missing_pipe_agree` of its samples agreeing, its height
+    further iterations `polish_ranges_px`; on the iterations whose search range is at most
+    `silhouette_range_px` (0 = never) each gradient-peak edge is moved to the silhouette of the fitted
+    limb profile, as the tracker does (`edges.refine_silhouette`, kept at the peak where the fit's rms
+    exceeds `silhouette_max_rms` of the profile's range): the peak of a shaded limb lies 1-2 px inside
+    it; `samples_per_limb`, `edge_threshold`, `inlier_px` as the tracker's; `margin_px` the image border;
+    `attitude_std_rad` the roll / pitch error and `edge_noise_px` the noise of one edge sample, which
+    weigh the autopilot's tilt and height against the edges. Decision: a hypothesis is credible when
+    at least `min_agree_fraction` of its limb samples agree, its residual is below `max_residual_px`,
+    `min_pipes` pipes have both limbs in view with at least `min_pipe_agree` of each limb's samples
+    agreeing (and a run of consecutive agreeing samples over at least `min_limb_run` of the limb), no
+    pipe with both limbs in view has less than `missing_pipe_agree` of its samples agreeing, its height
     is within `height_gate_sigma` standard deviations of the measured one and its tilt within
     `tilt_gate_sigma` attitude standard deviations of the autopilot's; hypotheses further
     than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The
@@ -71,6 +74,8 @@ class AcquisitionConfig:
     max_swept_hypotheses: int = 6
     check_ranges_px: tuple[int, ...] = (10, 5, 3)
     polish_ranges_px: tuple[int, ...] = (4, 3, 3, 3)
+    silhouette_range_px: int = 3
+    silhouette_max_rms: float = 0.08
     samples_per_limb: int = 24
     edge_threshold: float = 8.0
     inlier_px: float = 1.5
@@ -110,6 +115,10 @@ class AcquisitionConfig:
                      "max_swept_hypotheses"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if int(self.silhouette_range_px) < 0:
+            raise InputError(f"silhouette_range_px: must be >= 0 (0 = off), got {self.silhouette_range_px}")
+        if not (np.isfinite(self.silhouette_max_rms) and self.silhouette_max_rms >= 0.0):
+            raise InputError(f"silhouette_max_rms: must be >= 0 (0 = any fit), got {self.silhouette_max_rms}")
         if not self.check_ranges_px or min(self.check_ranges_px) < 1:
             raise InputError(f"check_ranges_px: expected ranges >= 1 px, got {self.check_ranges_px}")
 

@@ -24,7 +24,7 @@ from companion.checks import FloatArray
 from companion.geometry import se3
 from companion.vision.rack.acquire_edges import normal_profiles, percentile_90, pick_edges
 from companion.vision.rack.acquire_samples import sample_limbs_many
-from companion.vision.rack.edges import EdgeMeasurements
+from companion.vision.rack.edges import EdgeMeasurements, refine_silhouette
 from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import median_1d, pose_jacobian, robust_weights, solve_normal_equations
@@ -151,9 +151,12 @@ def check_poses(
     up_weight: float = 0.0,
     height_m: float | None = None,
     height_weight: float = 0.0,
+    silhouette: tuple[int, float] = (0, 0.0),
 ) -> list[EdgeCheck]:
     """`check_pose` of several poses (with their polarities) side by side: each pose's iterations are its
-    own, the limb sampling and the edge search of an iteration run once over the samples of all poses."""
+    own, the limb sampling and the edge search of an iteration run once over the samples of all poses.
+    `silhouette` = (range_px, max_rms): on iterations whose range is at most range_px the edges are moved
+    to the fitted limb silhouettes (`_to_silhouettes`; range_px 0 = never)."""
     M = pipes.radii.size
     states = [_Refinement(np.array(T, dtype=np.float64, copy=True), np.repeat(np.asarray(pol, dtype=np.float64), 2))
               for T, pol in zip(T_rack_cam, pipe_polarity, strict=True)]
@@ -177,6 +180,9 @@ def check_poses(
                                np.concatenate([s.normal_px for _, s in pairs]), int(rng_px), 1.5)
         meas = pick_edges(prof, np.concatenate([st.limb_pol[s.limb] for st, s in pairs]), int(rng_px),
                           edge_threshold)
+        fit = 0 < rng_px <= silhouette[0]
+        if fit:
+            meas = _to_silhouettes(image_f32, [s for _, s in pairs], meas, silhouette[1])
         metas = [_rows(meas, n_rows[k], n_rows[k + 1]) for k in range(len(pairs))]
         again = [k for k, (st, s) in enumerate(pairs) if _learn(st, s, metas[k])]
         if again:
@@ -184,6 +190,8 @@ def check_poses(
             meas2 = pick_edges(prof[rows], np.concatenate([pairs[k][0].limb_pol[pairs[k][1].limb] for k in again]),
                                int(rng_px), edge_threshold)
             n2 = np.cumsum([0] + [n_rows[k + 1] - n_rows[k] for k in again])
+            if fit:
+                meas2 = _to_silhouettes(image_f32, [pairs[k][1] for k in again], meas2, silhouette[1])
             for j, k in enumerate(again):
                 metas[k] = _rows(meas2, n2[j], n2[j + 1])
         # Strong edges per pose; the rows' motion fields and weights once for all poses.
@@ -203,6 +211,18 @@ def check_poses(
             _solve(st, s, fs[k], A6[a:b], side_l[k], r_all[a:b], w_all[a:b], prior8, up_cam, up_weight, height_m,
                    height_weight)
     return [st.result if st.result is not None else _verdict(st, M, inlier_px) for st in states]
+
+
+def _to_silhouettes(image_f32: Float32Image, samples: list[Any], meas: EdgeMeasurements,
+                    max_rms: float) -> EdgeMeasurements:
+    """`meas` (the edges of `samples`, concatenated) with each gradient peak moved to the silhouette of the
+    fitted limb profile (`edges.refine_silhouette` with the tracker's default windows, 6 px in, 5 px out):
+    the peak of a shaded limb lies 1-2 px inside it, by an amount that changes with the ground beside it."""
+    uv = np.concatenate([s.uv for s in samples])
+    normal = np.concatenate([s.normal_px for s in samples])
+    offset = refine_silhouette(image_f32, uv, normal, meas.offset_px, 6, 5, max_rel_rms=max_rms)
+    return EdgeMeasurements(offset_px=offset, found=meas.found, sign=meas.sign, strength=meas.strength,
+                            inner=meas.inner)
 
 
 class _Refinement:

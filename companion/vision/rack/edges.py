@@ -59,6 +59,7 @@ def search_edges(
     tangent_offset_px: float = 0.0,
     forward_difference: bool = False,
     inner_ref: FloatArray | None = None,
+    innermost_ratio: float = 0.0,
 ) -> EdgeMeasurements:
     """Search edges for N samples at `uv` (N, 2) along unit `normal` (N, 2).
 
@@ -76,6 +77,12 @@ def search_edges(
     gain-invariant after normalisation); a ground or shadow edge a few pixels outside the limb
     has the limb and the ground in that window instead. The chosen candidates' inner profiles
     are returned in `inner` (for learning the reference).
+
+    Innermost edge: with `innermost_ratio` > 0 a sample without a reference takes the innermost
+    candidate (the one nearest the pipe's inside) whose score is at least that fraction of its best,
+    not the best (`pick_in_gradients`). Inside its silhouette the cladding is smooth; beyond it the
+    ground may carry stronger edges, e.g. a grating whose contrast against a shaded limb changes sign
+    from sample to sample, so the limb's step is weaker than the grating's next one a few pixels out.
     """
     n = uv.shape[0]
     R = int(range_px)
@@ -129,7 +136,11 @@ def search_edges(
         np.minimum(fit, np.float32(1.0), out=fit)
         fit *= fit
         factor = fit if has_ref.all() else np.where(has_ref[:, None], fit, np.float32(1.0))
-    offset, found, b, g_b = pick_in_gradients(g, polarity, prior, R, threshold, factor)
+    innermost: Any = innermost_ratio
+    if innermost_ratio > 0.0 and factor is not None:
+        # a learnt inner profile already tells the limb from an edge beyond it: the rule is for the rest
+        innermost = np.where(has_ref, 0.0, innermost_ratio)
+    offset, found, b, g_b = pick_in_gradients(g, polarity, prior, R, threshold, factor, innermost)
     if forward_difference:
         offset = offset + 0.5
     inner = np.zeros((n, 0)) if windows is None else windows[np.arange(n), b].astype(np.float64)
@@ -195,12 +206,15 @@ def pick_in_gradients(
     R: int,
     threshold: float,
     factor: Any = None,
+    innermost_ratio: float | FloatArray = 0.0,
 ) -> tuple[FloatArray, BoolArray, np.ndarray[Any, np.dtype[np.intp]], Float32Array]:
     """The edge of each sample in its gradient profile `g` (N, 2R+1) (offsets k = -R..R along the normal).
 
     `polarity` (N,) +1/-1 accepts only gradients of that sign, 0 either; candidates below `threshold` are
     ignored; the score is the signed gradient times the distance `prior` (2R+1,) (and `factor` (N, 2R+1)
-    when given); the best one is refined by a parabola. Returns the offset (px, before any half-pixel
+    when given); the best one is refined by a parabola. With `innermost_ratio` > 0 (a scalar or one per
+    sample, 0 = off for that sample) the innermost local maximum (lowest k) scoring at least that fraction
+    of the best is taken instead of the best. Returns the offset (px, before any half-pixel
     shift of a forward difference), found, the chosen index b (1..2R-1) and the gradient there.
     """
     n = g.shape[0]
@@ -216,6 +230,17 @@ def pick_in_gradients(
     if factor is not None:
         score = score * factor
     best = score.argmax(axis=1)
+    if np.any(np.asarray(innermost_ratio) > 0.0):
+        # The innermost local maximum scoring at least `innermost_ratio` x the best: inside its silhouette a
+        # pipe's cladding is smooth, while the ground beyond may carry stronger edges (a grating whose
+        # contrast against a shaded limb changes sign from sample to sample).
+        top = score[np.arange(n), best][:, None]
+        pad = np.pad(score, ((0, 0), (1, 1)))
+        ratio = np.asarray(innermost_ratio, dtype=np.float32).reshape(-1, 1)
+        cand = (score >= pad[:, :-2]) & (score >= pad[:, 2:]) & (score > 0.0) & (score >= ratio * top) & (ratio > 0.0)
+        cand[:, 0] = False  # a maximum at the range's end may be the flank of an edge beyond it
+        cand[:, -1] = False
+        best = np.where(cand.any(axis=1), cand.argmax(axis=1), best)
     width = 2 * R + 1
     row0 = np.arange(n) * width  # flat index of each row's k = -R
     found = np.asarray((score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R))

@@ -49,7 +49,11 @@ class RackTrackerConfig:
     on and at the tracking range only (0 = a Gaussian as wide as the range, nearly flat): a stronger ground
     or shadow edge a few pixels outside a limb then loses to the limb, while the first iteration still
     follows a motion the prediction missed (over a crossing pipe, along the pipes, edges move by several
-    pixels); `blur_sigma_px` an optional Gaussian pre-blur;
+    pixels); `edge_innermost_ratio` > 0: with the same timing, a sample whose limb has no learnt inner
+    profile yet (the first frame after a reset, a limb just come into view) takes the innermost candidate
+    scoring at least this fraction of its best instead of the best (`search_edges`; 0 = off): over a
+    grating a shaded limb's step is weaker than the grating's next edge a few pixels out;
+    `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
     Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
@@ -125,6 +129,7 @@ class RackTrackerConfig:
     edge_profile_rate: float = 0.1
     edge_tangent_px: float = 0.0
     edge_distance_sigma_px: float = 4.0
+    edge_innermost_ratio: float = 0.6
     blur_sigma_px: float = 0.0
     polarity_rate: float = 0.1
     margin_px: float = 6.0
@@ -192,6 +197,8 @@ class RackTrackerConfig:
                              f"got {self.ground_height_m}")
         if not (np.isfinite(self.edge_distance_sigma_px) and self.edge_distance_sigma_px >= 0.0):
             raise InputError(f"edge_distance_sigma_px: must be >= 0 (0 = off), got {self.edge_distance_sigma_px}")
+        if not (np.isfinite(self.edge_innermost_ratio) and 0.0 <= self.edge_innermost_ratio <= 1.0):
+            raise InputError(f"edge_innermost_ratio: must be in [0, 1] (0 = off), got {self.edge_innermost_ratio}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
         if self.max_texture_points < 0:

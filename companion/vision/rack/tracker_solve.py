@@ -139,8 +139,10 @@ class TrackerSolve(TrackerState):
                 sigma = max(cfg.blur_sigma_px, rng_px / 16.0)
                 img_it = np.asarray(cv2.GaussianBlur(img_raw, (0, 0), sigma), dtype=np.float32)
                 thr = cfg.edge_threshold * min(1.0, 1.5 / sigma)  # blurred steps have weaker gradients
+            near = it > 0 and rng_px <= cfg.search_range_px  # the tracking range, from the second iteration
             meas = search_edges(img_it, samples.uv, samples.normal_px, pol, rng_px, thr,
-                                prior_sigma_px=dist_sigma if it > 0 and rng_px <= cfg.search_range_px else None,
+                                prior_sigma_px=dist_sigma if near else None,
+                                innermost_ratio=cfg.edge_innermost_ratio if near else 0.0,
                                 tangent_offset_px=cfg.edge_tangent_px,
                                 inner_ref=self._profiles[samples.limb] if cfg.edge_profile_px > 0 else None)
             offset_px = meas.offset_px
