@@ -40,4 +40,6 @@ def test_silhouette_settings_are_checked() -> None:
         AcquisitionConfig(silhouette_range_px=-1)
     with pytest.raises(InputError, match="silhouette_max_rms"):
         AcquisitionConfig(silhouette_max_rms=float("nan"))
+    with pytest.raises(InputError, match="silhouette_min_height_m"):
+        AcquisitionConfig(silhouette_min_height_m=float("inf"))
     AcquisitionConfig(silhouette_range_px=0)  # off

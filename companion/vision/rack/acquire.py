@@ -189,7 +189,8 @@ def acquire_rack(
                            cfg.polish_ranges_px if polish else cfg.check_ranges_px, cfg.samples_per_limb,
                            cfg.edge_threshold, cfg.inlier_px, cfg.margin_px, damping / 4.0 if polish else damping,
                            up_cam, up_weight, prior.height_m, h_weight,
-                           silhouette=(cfg.silhouette_range_px, cfg.silhouette_max_rms))
+                           silhouette=(cfg.silhouette_range_px if prior.height_m >= cfg.silhouette_min_height_m else 0,
+                                       cfg.silhouette_max_rms))
 
     # Tracker polarity (+1: brighter outward) from the segments' pairing; from the sweep it is
     # unknown (0) and learnt limb by limb: a limb may be darker or brighter than the ground.

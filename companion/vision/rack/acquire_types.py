@@ -37,7 +37,10 @@ class AcquisitionConfig:
     `silhouette_range_px` (0 = never) each gradient-peak edge is moved to the silhouette of the fitted
     limb profile, as the tracker does (`edges.refine_silhouette`, kept at the peak where the fit's rms
     exceeds `silhouette_max_rms` of the profile's range): the peak of a shaded limb lies 1-2 px inside
-    it; `samples_per_limb`, `edge_threshold`, `inlier_px` as the tracker's; `margin_px` the image border;
+    it; only with the camera at least `silhouette_min_height_m` above the rack's support plane (on the
+    deck a limb's shading spans tens of pixels, beyond the fit's windows, and the fit chose a confident
+    pose one pipe over), the peaks elsewhere; `samples_per_limb`, `edge_threshold`, `inlier_px` as the
+    tracker's; `margin_px` the image border;
     `attitude_std_rad` the roll / pitch error and `edge_noise_px` the noise of one edge sample, which
     weigh the autopilot's tilt and height against the edges. Decision: a hypothesis is credible when
     at least `min_agree_fraction` of its limb samples agree, its residual is below `max_residual_px`,
@@ -76,6 +79,7 @@ class AcquisitionConfig:
     polish_ranges_px: tuple[int, ...] = (4, 3, 3, 3)
     silhouette_range_px: int = 3
     silhouette_max_rms: float = 0.08
+    silhouette_min_height_m: float = 1.5
     samples_per_limb: int = 24
     edge_threshold: float = 8.0
     inlier_px: float = 1.5
@@ -119,6 +123,8 @@ class AcquisitionConfig:
             raise InputError(f"silhouette_range_px: must be >= 0 (0 = off), got {self.silhouette_range_px}")
         if not (np.isfinite(self.silhouette_max_rms) and self.silhouette_max_rms >= 0.0):
             raise InputError(f"silhouette_max_rms: must be >= 0 (0 = any fit), got {self.silhouette_max_rms}")
+        if not np.isfinite(self.silhouette_min_height_m):
+            raise InputError(f"silhouette_min_height_m: must be finite, got {self.silhouette_min_height_m}")
         if not self.check_ranges_px or min(self.check_ranges_px) < 1:
             raise InputError(f"check_ranges_px: expected ranges >= 1 px, got {self.check_ranges_px}")
 
