@@ -40,9 +40,9 @@ class AcquisitionConfig:
     it; only with the camera at least `silhouette_min_height_m` above the rack's support plane (on the
     deck a limb's shading spans tens of pixels, beyond the fit's windows, and the fit chose a confident
     pose one pipe over), the peaks elsewhere; `samples_per_limb`, `edge_threshold`, `inlier_px` as the
-    tracker's; `margin_px` the image border;
-    `attitude_std_rad` the roll / pitch error and `edge_noise_px` the noise of one edge sample, which
-    weigh the autopilot's tilt and height against the edges. Decision: a hypothesis is credible when
+    tracker's; `margin_px` the image border; `attitude_std_rad` the roll / pitch error and
+    `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height against
+    the edges. Decision: a hypothesis is credible when
     at least `min_agree_fraction` of its limb samples agree, its residual is below `max_residual_px`,
     `min_pipes` pipes have both limbs in view with at least `min_pipe_agree` of each limb's samples
     agreeing (and a run of consecutive agreeing samples over at least `min_limb_run` of the limb), no

@@ -213,7 +213,7 @@ def check_poses(
     return [st.result if st.result is not None else _verdict(st, M, inlier_px) for st in states]
 
 
-def _to_silhouettes(image_f32: Float32Image, samples: list[Any], meas: EdgeMeasurements,
+def _to_silhouettes(image_f32: Float32Image, samples: list[LimbSamples], meas: EdgeMeasurements,
                     max_rms: float) -> EdgeMeasurements:
     """`meas` (the edges of `samples`, concatenated) with each gradient peak moved to the silhouette of the
     fitted limb profile (`edges.refine_silhouette` with the tracker's default windows, 6 px in, 5 px out):
