@@ -42,11 +42,11 @@ class AcquisitionConfig:
     pose one pipe over), the peaks elsewhere; `samples_per_limb`, `edge_threshold`, `inlier_px` as the
     tracker's; `margin_px` the image border; `attitude_std_rad` the roll / pitch error and
     `edge_noise_px` the noise of one edge sample, which weigh the autopilot's tilt and height against
-    the edges. Decision: a hypothesis is credible when
-    at least `min_agree_fraction` of its limb samples agree, its residual is below `max_residual_px`,
-    `min_pipes` pipes have both limbs in view with at least `min_pipe_agree` of each limb's samples
-    agreeing (and a run of consecutive agreeing samples over at least `min_limb_run` of the limb), no
-    pipe with both limbs in view has less than `missing_pipe_agree` of its samples agreeing, its height
+    the edges. Decision: a hypothesis is credible when at least `min_agree_fraction` of its limb
+    samples agree, its residual is below `max_residual_px`, `min_pipes` pipes have both limbs in view
+    with at least `min_pipe_agree` of each limb's samples agreeing (and a run of consecutive agreeing
+    samples over at least `min_limb_run` of the limb), no pipe with both limbs in view has less than
+    `missing_pipe_agree` of its samples agreeing, its height
     is within `height_gate_sigma` standard deviations of the measured one and its tilt within
     `tilt_gate_sigma` attitude standard deviations of the autopilot's; hypotheses further
     than `yaw_gate_sigma` standard deviations from a supplied heading are not proposed. The

@@ -234,13 +234,13 @@ def pick_in_gradients(
         # The innermost local maximum scoring at least `innermost_ratio` x the best: inside its silhouette a
         # pipe's cladding is smooth, while the ground beyond may carry stronger edges (a grating whose
         # contrast against a shaded limb changes sign from sample to sample).
+        # Interior candidates only (k = -R+1..R-1): a maximum at the range's end may be the flank of an edge
+        # beyond it.
         top = score[np.arange(n), best][:, None]
-        pad = np.pad(score, ((0, 0), (1, 1)))
         ratio = np.asarray(innermost_ratio, dtype=np.float32).reshape(-1, 1)
-        cand = (score >= pad[:, :-2]) & (score >= pad[:, 2:]) & (score > 0.0) & (score >= ratio * top) & (ratio > 0.0)
-        cand[:, 0] = False  # a maximum at the range's end may be the flank of an edge beyond it
-        cand[:, -1] = False
-        best = np.where(cand.any(axis=1), cand.argmax(axis=1), best)
+        mid = score[:, 1:-1]
+        cand = (mid >= score[:, :-2]) & (mid >= score[:, 2:]) & (mid > 0.0) & (mid >= ratio * top) & (ratio > 0.0)
+        best = np.where(cand.any(axis=1), cand.argmax(axis=1) + 1, best)
     width = 2 * R + 1
     row0 = np.arange(n) * width  # flat index of each row's k = -R
     found = np.asarray((score.ravel()[row0 + best] > 0.0) & (best > 0) & (best < 2 * R))
