@@ -217,6 +217,10 @@ def test_prior_and_config_reject_bad_values_naming_the_field() -> None:
         AcquisitionPrior(roll_rad=0.0, pitch_rad=0.0, height_m=2.0, height_std_m=0.1, T_body_cam=np.eye(3))
     with pytest.raises(InputError, match="line_scale"):
         AcquisitionConfig(line_scale=2.0)
+    for name in ("min_pipe_agree", "min_limb_run"):  # fractions of a limb's samples
+        for bad in (0.0, 1.5, float("nan")):
+            with pytest.raises(InputError, match=name):
+                AcquisitionConfig(**{name: bad})
     prior = AcquisitionPrior(roll_rad=0.0, pitch_rad=0.0, height_m=2.0, height_std_m=0.1)
     with pytest.raises(InputError, match="image"):
         acquire_rack(np.zeros((10, 10), dtype=np.uint8), five_pipes(), CAM, prior)

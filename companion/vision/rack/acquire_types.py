@@ -112,6 +112,9 @@ class AcquisitionConfig:
                      "covariance_inflation", "yaw_gate_sigma"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
+        for name in ("min_pipe_agree", "min_limb_run"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise InputError(f"{name}: must be in (0, 1], got {getattr(self, name)}")
         for name in ("profile_bin_px", "sweep_step_m", "sweep_tol_px"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name}: must be positive, got {getattr(self, name)}")
