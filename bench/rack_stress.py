@@ -327,7 +327,9 @@ def acceptance(cells: dict[str, dict[str, Any]], summary: dict[str, Any]) -> dic
 OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tangent_px": 0.0, "ground_points": 0,
                "max_residual_px": 2.0, "init_search_range_m": 0.25, "texture_weight": 2.0, "relock_after_frames": 0,
                "gap_scan": False, "edge_silhouette_px": 0, "unobserved_velocity_tau_s": 0.0,
-               "texture_refine_obs": 20}
+               "texture_refine_obs": 20,
+               # added since (2026-11-26 night and 2026-11-27): off, so that "old" stays the old tracker
+               "edge_distance_sigma_px": 0.0, "edge_innermost_ratio": 0.0, "edge_strength_weight": 0.0}
 
 
 def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:

@@ -33,6 +33,8 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "unobserved_velocity_tau_s": 0.0,
     "gap_scan": False,
     "texture_weight": 2.0,  # flown on ArduCopter; 20 put a waypoint 17 cm off (docs/rack.md)
+    # not flown yet in the closed loop (library default since 2026-11-27 morning, stress bench only)
+    "edge_strength_weight": 0.0,
     "texture_refine_obs": 20,
     # the filter treats each rack pose as an absolute fix and cannot carry the along-pipe position on the
     # IMU for seconds (companion sim, field appearance, 2026-11-26: 0.7-1.9 m off within 10 s), so the

@@ -16,6 +16,7 @@ from companion.vision.rack.motion import (
     pose_jacobian,
     robust_weights,
     solve_normal_equations,
+    strength_weights,
 )
 from tests.numdiff import central_jacobian
 
@@ -152,3 +153,14 @@ def test_gated_residual_variance_counts_only_rows_inside_the_gate_with_weight() 
     expected = (1.0 * 0.16 + 0.5 * 0.64 + 2.0 * 1.0) / (3 - 1)
     assert gated_residual_variance(w, r_gate, r, 3.0, 1) == pytest.approx(expected)
     assert gated_residual_variance(w, r_gate, r, 3.0, 6) == pytest.approx(expected * 2)  # at least one dof
+
+
+def test_strength_weights_scale_edge_rows_by_their_contrast_relative_to_the_median() -> None:
+    """(strength / median) ** power, clipped: a limb at a quarter of the median contrast counts 0.71 at power 0.25,
+    one at four times 1.41; the clip keeps a lone strong edge (or a near-zero one) from deciding alone."""
+    s = np.array([10.0, 40.0, 40.0, 40.0, 160.0])  # median 40
+    np.testing.assert_allclose(strength_weights(s, 0.25), [0.25**0.25, 1.0, 1.0, 1.0, 4.0**0.25])
+    np.testing.assert_allclose(strength_weights(s, 2.0), [0.0625, 1.0, 1.0, 1.0, 4.0])  # 16 clipped to 4
+    np.testing.assert_allclose(strength_weights(np.array([0.001, 40.0, 40.0]), 1.0), [0.05, 1.0, 1.0])  # floor
+    np.testing.assert_array_equal(strength_weights(s, 0.0), np.ones(5))  # off
+    assert strength_weights(np.zeros(0), 0.25).shape == (0,)

@@ -204,6 +204,13 @@ def test_edge_distance_sigma_must_not_be_negative() -> None:
     RackTrackerConfig(edge_distance_sigma_px=0.0)  # off
 
 
+@pytest.mark.parametrize("power", [-0.5, 5.0, float("nan")])
+def test_edge_strength_weight_must_be_a_small_power(power: float) -> None:
+    with pytest.raises(InputError, match="edge_strength_weight"):
+        RackTrackerConfig(edge_strength_weight=power)
+    RackTrackerConfig(edge_strength_weight=0.0)  # off
+
+
 @pytest.mark.parametrize("ratio", [-0.1, 1.5, float("nan")])
 def test_edge_innermost_ratio_must_be_a_fraction(ratio: float) -> None:
     with pytest.raises(InputError, match="edge_innermost_ratio"):

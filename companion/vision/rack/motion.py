@@ -48,6 +48,19 @@ def median_1d(a: FloatArray) -> float:
     return float(p[h]) if n % 2 else float((p[h - 1] + p[h]) / 2.0)
 
 
+def strength_weights(strength: FloatArray, power: float, lo: float = 0.05, hi: float = 4.0) -> FloatArray:
+    """Weights (N,) of edge rows by their gradient strength (N,) (grey levels): (strength / its median) ** power,
+    clipped to [lo, hi]; ones when `power` is 0 or there are no rows.
+
+    A limb's edge bias from the brightness structure beside it (the ground's texture, its shading) scales with
+    the inverse of the limb's contrast (docs/acquire.md, "What one image allows"): weak limbs count less.
+    """
+    if power == 0.0 or strength.size == 0:
+        return np.ones(strength.size)
+    med = median_1d(strength)
+    return np.asarray(np.clip((strength / max(med, 1e-6)) ** power, lo, hi))
+
+
 def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None = None) -> FloatArray:
     """IRLS weights of residuals r (px).
 

@@ -53,6 +53,9 @@ class RackTrackerConfig:
     profile yet (the first frame after a reset, a limb just come into view) takes the innermost candidate
     scoring at least this fraction of its best instead of the best (`search_edges`; 0 = off): over a
     grating a shaded limb's step is weaker than the grating's next edge a few pixels out;
+    `edge_strength_weight` > 0 weighs each edge row by (its gradient strength / the frame's median) to this
+    power, clipped to 0.05-4 (`motion.strength_weights`; 0 = off): the bias a limb's edge takes from the
+    brightness structure beside it scales with the inverse of its contrast, so weak limbs count less;
     `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
@@ -130,6 +133,7 @@ class RackTrackerConfig:
     edge_tangent_px: float = 0.0
     edge_distance_sigma_px: float = 4.0
     edge_innermost_ratio: float = 0.6
+    edge_strength_weight: float = 0.25
     blur_sigma_px: float = 0.0
     polarity_rate: float = 0.1
     margin_px: float = 6.0
@@ -197,6 +201,8 @@ class RackTrackerConfig:
                              f"got {self.ground_height_m}")
         if not (np.isfinite(self.edge_distance_sigma_px) and self.edge_distance_sigma_px >= 0.0):
             raise InputError(f"edge_distance_sigma_px: must be >= 0 (0 = off), got {self.edge_distance_sigma_px}")
+        if not (np.isfinite(self.edge_strength_weight) and 0.0 <= self.edge_strength_weight <= 4.0):
+            raise InputError(f"edge_strength_weight: must be in [0, 4] (0 = off), got {self.edge_strength_weight}")
         if not (np.isfinite(self.edge_innermost_ratio) and 0.0 <= self.edge_innermost_ratio <= 1.0):
             raise InputError(f"edge_innermost_ratio: must be in [0, 1] (0 = off), got {self.edge_innermost_ratio}")
         if self.ground_trust_frames < 1:

@@ -25,6 +25,7 @@ from companion.vision.rack.motion import (
     pose_jacobian,
     robust_weights,
     solve_normal_equations,
+    strength_weights,
 )
 from companion.vision.rack.tracker_state import TrackerState
 
@@ -182,6 +183,8 @@ class TrackerSolve(TrackerState):
                 r[n_et:n_w] = r_g
             w = np.empty(n_rows)
             w[:n_w] = robust_weights(r[:n_w], cfg.robust, cfg.nu_px, gate)
+            if cfg.edge_strength_weight > 0.0 and n_edge:
+                w[:n_edge] *= strength_weights(meas.strength[f], cfg.edge_strength_weight)
             w[n_edge:n_et] *= cfg.texture_weight
             w[n_et:n_w] *= cfg.ground_weight
             if ground_trust is not None:
