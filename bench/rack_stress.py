@@ -17,6 +17,8 @@ noise per axis and frame). Each (cell, seed) frame set is rendered once and cach
 
 Usage: python bench/rack_stress.py [--seeds tuning|heldback|all] [--quick] [--cells a,b] [--rows vision,edge_only]
        [--set name=value ...] (override RackTrackerConfig fields of every row, for trying changes)
+       [--plain-allocator] (glibc's default heap thresholds; by default this process keeps freed memory for the
+       next frame as the daemon's does, drivers/allocator.py: it changes the frames/s, not the estimates)
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from companion.geometry import se3, so3  # noqa: E402
 from companion.sim import rack_scene_field  # noqa: E402
 from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig, decode_frame  # noqa: E402
 from companion.vision.rack import Pipe, RackModel, RackTracker, RackTrackerConfig  # noqa: E402
+from drivers.allocator import keep_freed_memory  # noqa: E402
 
 CAMERA = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 # Mild barrel distortion (about 5 px at the corners) and its calibration, given to the tracker too.
@@ -386,10 +389,16 @@ def main() -> None:
     ap.add_argument("--cache-dir", default=os.environ.get("RACK_STRESS_CACHE", "/tmp/rack_stress_cache"))
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--throughput", action="store_true", help="only the throughput check (see throughput())")
+    ap.add_argument("--plain-allocator", action="store_true",
+                    help="leave glibc's heap thresholds as they are (default: as the daemon sets them, "
+                         "drivers/allocator.py)")
     ap.add_argument("--render-only", action="store_true",
                     help="only fill the frame cache (no tracker is run, no result is printed but the counts)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    # The daemon's process keeps freed heap memory for the next frame (drivers/allocator.py); so does this one.
+    allocator = "plain" if args.plain_allocator else \
+        ("daemon's" if keep_freed_memory() else "plain (not glibc)")
     t_start = time.perf_counter()
     seeds = {"tuning": TUNING_SEEDS, "heldback": HELDBACK_SEEDS, "all": TUNING_SEEDS + HELDBACK_SEEDS,
              "extra": EXTRA_SEEDS}[args.seeds]
@@ -405,7 +414,7 @@ def main() -> None:
     cache = None if args.no_cache else Path(args.cache_dir)
     if args.throughput:
         print(json.dumps({"benchmark": "rack_stress", "throughput": throughput(overrides, cache),
-                          "elapsed_s": time.perf_counter() - t_start}))
+                          "allocator": allocator, "elapsed_s": time.perf_counter() - t_start}))
         return
     out_cells: dict[str, dict[str, Any]] = {}
     for name in wanted:
@@ -434,7 +443,7 @@ def main() -> None:
         "benchmark": "rack_stress", "seeds": args.seeds, "seed_values": list(seeds), "quick": args.quick,
         "overrides": overrides, "camera": {"width": 720, "height": 480, "f_px": 630.0, "rate_hz": RATE_HZ},
         "noise_std_grey": NOISE_STD, "blur_px": BLUR_PX, "start_offset": {"m": START_OFF_M, "deg": 0.5},
-        "cells": out_cells, "summary": summary, "acceptance": acceptance(out_cells, summary),
+        "cells": out_cells, "summary": summary, "acceptance": acceptance(out_cells, summary), "allocator": allocator,
         "elapsed_s": time.perf_counter() - t_start,
     }
     print(json.dumps(out))

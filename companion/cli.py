@@ -71,6 +71,13 @@ def _fail(message: str, code: int) -> int:
 # ---------------------------------------------------------------------------------------------- handlers
 
 
+def _keep_freed_memory() -> None:
+    """The vision loop's processes keep freed heap memory for the next frame (`drivers/allocator.py`)."""
+    from drivers.allocator import keep_freed_memory
+
+    keep_freed_memory()
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
     from companion.sim.ground_station import ground_station_overrides
     from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
@@ -79,6 +86,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     faults = [parse_fault_spec(spec) for spec in args.fault]
     start_error = parse_start_error(args.start_error) if args.start_error is not None else None
     _setup_logging(args.verbose)
+    _keep_freed_memory()
     options = SimOptions(
         mission_path=Path(args.mission) if args.mission else None,
         autopilot=args.autopilot,
@@ -133,6 +141,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     validate_for_run(config)  # what check-config checks, before any flight folder is made
     _setup_logging(args.verbose)
+    _keep_freed_memory()
     return asyncio.run(run_daemon(config, config_path=path, record_frames=True if args.record_frames else None))
 
 
@@ -169,6 +178,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from companion.daemon.replay import run_replay_cli
 
     _setup_logging(args.verbose)
+    _keep_freed_memory()
     return run_replay_cli(
         folder=Path(args.folder),
         config_path=Path(args.config) if args.config else None,
