@@ -29,9 +29,11 @@ MMAP_MIB = 16
 
 
 def keep_freed_memory(trim_mib: int = TRIM_MIB, mmap_mib: int = MMAP_MIB) -> bool:
-    """Set glibc's heap trim threshold to `trim_mib` and its mmap threshold to `mmap_mib` (MiB); True if set.
+    """Set glibc's heap trim threshold to `trim_mib` and its mmap threshold to `mmap_mib` (MiB); True if both set.
 
-    Both must be positive and `mmap_mib` at most 32 (glibc's ceiling for the mmap threshold on 64-bit).
+    Both must be positive and `mmap_mib` at most 32 (glibc's ceiling for the mmap threshold on 64-bit). False
+    when glibc refuses a value (a 32-bit build caps the mmap threshold at 512 KiB: the trim threshold is then
+    set alone, which still halves the page faults) or the C library is not glibc.
     """
     if trim_mib <= 0 or not 0 < mmap_mib <= 32:
         raise ValueError(f"keep_freed_memory: need trim_mib > 0 and 0 < mmap_mib <= 32, got {trim_mib}, {mmap_mib}")
@@ -46,6 +48,6 @@ def keep_freed_memory(trim_mib: int = TRIM_MIB, mmap_mib: int = MMAP_MIB) -> boo
     gnu_get_libc_version.restype = ctypes.c_char_p
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     ok = bool(mallopt(_M_TRIM_THRESHOLD, trim_mib << 20)) and bool(mallopt(_M_MMAP_THRESHOLD, mmap_mib << 20))
-    _log.debug("allocator: glibc %s, trim %d MiB, mmap %d MiB: %s", gnu_get_libc_version().decode(), trim_mib,
-               mmap_mib, "set" if ok else "refused")
+    _log.log(logging.DEBUG if ok else logging.INFO, "allocator: glibc %s, trim %d MiB, mmap %d MiB: %s",
+             gnu_get_libc_version().decode(), trim_mib, mmap_mib, "set" if ok else "refused")
     return ok

@@ -5,6 +5,7 @@ from __future__ import annotations
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -36,7 +37,8 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0) / 40)
 
 
 def _faults_per_frame(mode: str) -> float:
-    out = subprocess.run([sys.executable, "-c", _LOOP, mode], capture_output=True, text=True, check=True, cwd=".")
+    root = Path(__file__).resolve().parents[2]  # the repository: `drivers` importable from the fresh interpreter
+    out = subprocess.run([sys.executable, "-c", _LOOP, mode], capture_output=True, text=True, check=True, cwd=root)
     return float(out.stdout.strip())
 
 
