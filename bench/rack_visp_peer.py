@@ -220,7 +220,10 @@ def main() -> None:
                            "seed_values": list(seeds), "visp_moving_edges": me or "ViSP's tutorial values",
                            "frames": args.frames or "all", "visp": subprocess.run(
                                ["pkg-config", "--modversion", "visp"], capture_output=True, text=True).stdout.strip(),
-                           "cells": cells, "summary": summary}
+                           "cells": cells, "summary": summary,
+                           "fps_note": "ViSP rows: frames over the peer process's wall time (reading the PGM frames "
+                                       "and the model included), an upper bound of its tracking time; ours: time "
+                                       "inside track()"}
     if not args.no_ours:
         out["ours_position_le_visp_hybrid"] = sum(
             c["rows"]["ours"]["rms_position_cm"] <= c["rows"]["visp_hybrid"]["rms_position_cm"] for c in cells.values())
