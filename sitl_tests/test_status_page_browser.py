@@ -42,6 +42,7 @@ MISSION = """<?xml version="1.0" encoding="UTF-8"?>
 def _drive(url: str, upload: Path, screenshot: str | None) -> dict[str, Any]:
     """The browser session (blocking; run in a thread while the daemon runs on the loop)."""
     from selenium import webdriver
+    from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
@@ -81,14 +82,23 @@ def _drive(url: str, upload: Path, screenshot: str | None) -> dict[str, Any]:
         el(By.ID, "btn-upload").click()
         wait.until(lambda d: "uploaded" in el(By.ID, "message").text)
         seen["good_upload"] = el(By.ID, "message").text
-        item = wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#missions li[data-id='page_hop']"))
+        wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#missions li[data-id='page_hop']"))
         seen["listed"] = [li.get_attribute("data-id") for li in driver.find_elements(By.CSS_SELECTOR, "#missions li")]
         # like an operator: a start refused for a stale pose (a loaded machine starves the camera for a moment)
         # is clicked again
         seen["start_clicks"] = 0
         for _ in range(5):
             driver.execute_script("document.getElementById('message').textContent = ''")
-            item.find_element(By.CSS_SELECTOR, "button.start").click()
+            # The list is rendered anew on each refresh: find the button at the click, again if it was replaced
+            # between the find and the click (CI, 2026-11-27: a stale element).
+            for _attempt in range(5):
+                try:
+                    el(By.CSS_SELECTOR, "#missions li[data-id='page_hop'] button.start").click()
+                    break
+                except StaleElementReferenceException:
+                    time.sleep(0.1)
+            else:
+                raise AssertionError("the mission's Start button was replaced on every attempt to click it")
             seen["start_clicks"] += 1
             wait.until(lambda d: "started" in el(By.ID, "message").text or "refused" in el(By.ID, "message").text)
             if "started" in el(By.ID, "message").text:
