@@ -222,6 +222,14 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), ang
 
 
+def start_offset(rng: np.random.Generator) -> np.ndarray:
+    """The start pose's offset from the true first pose (twist, 6): START_OFF_M and START_OFF_RAD in random
+    directions (two draws of 3 from `rng`)."""
+    dp = rng.standard_normal(3)
+    dw = rng.standard_normal(3)
+    return np.concatenate([START_OFF_M * dp / np.linalg.norm(dp), START_OFF_RAD * dw / np.linalg.norm(dw)])
+
+
 def track_run(name: str, cell: dict[str, Any], seed: int, run: dict[str, Any], row: str, overrides: dict[str, Any],
               n_frames: int | None) -> dict[str, Any]:
     """One tracker over one run's frames: per-frame errors, lost frames, time inside track()."""
@@ -237,10 +245,7 @@ def track_run(name: str, cell: dict[str, Any], seed: int, run: dict[str, Any], r
     tracker = RackTracker(model, cam, RackTrackerConfig(**kw))
     rng = np.random.default_rng(run["cell_seed"] + 1)  # start offset (and attitude error) per run, not per row
     poses = run["poses"][:n_frames]
-    dp = rng.standard_normal(3)
-    dw = rng.standard_normal(3)
-    off = np.concatenate([START_OFF_M * dp / np.linalg.norm(dp), START_OFF_RAD * dw / np.linalg.norm(dw)])
-    tracker.reset(poses[0] @ se3.exp(off))
+    tracker.reset(poses[0] @ se3.exp(start_offset(rng)))
     att_err = np.radians(0.3) * rng.standard_normal((len(poses), 3))  # white, 0.3 deg per axis
     perr, aerr, t_ms = [], [], []
     lost = 0

@@ -110,11 +110,7 @@ def cao_model(model: RackModel) -> str:
 
 def start_pose(run: dict[str, Any]) -> np.ndarray:
     """The stress bench's start: the true first pose moved 1 cm / 0.5 deg (the same draw as `rs.track_run`)."""
-    rng = np.random.default_rng(run["cell_seed"] + 1)
-    dp = rng.standard_normal(3)
-    dw = rng.standard_normal(3)
-    off = np.concatenate([rs.START_OFF_M * dp / np.linalg.norm(dp), rs.START_OFF_RAD * dw / np.linalg.norm(dw)])
-    T0: np.ndarray = run["poses"][0] @ se3.exp(off)
+    T0: np.ndarray = run["poses"][0] @ se3.exp(rs.start_offset(np.random.default_rng(run["cell_seed"] + 1)))
     return T0
 
 
