@@ -73,3 +73,21 @@ def test_median_equals_numpys() -> None:
         if rng.random() < 0.3:
             v[: n // 2] = v[0]  # repeated values
         assert _median(v) == float(np.median(v))
+
+
+def test_median_of_large_arrays_equals_numpys_when_the_bracket_misses_too() -> None:
+    # Above 8192 values the middle rank is bracketed by a strided subsample; a periodic array whose period is the
+    # stride (the subsample one value repeated) or a sorted one must still give numpy's median (the fallback).
+    from companion.vision.rack.corners import _median
+
+    rng = np.random.default_rng(1415)
+    cases = [np.tile(np.arange(32, dtype=np.float32), 700), np.sort(rng.random(50_001).astype(np.float32)),
+             np.sort(rng.random(50_000).astype(np.float32))[::-1].copy(), np.zeros(9000, dtype=np.float32)]
+    for _ in range(40):
+        n = int(rng.integers(8192, 250_000))
+        v = (rng.exponential(size=n) ** 3 * 10 ** rng.uniform(-8, 3)).astype(np.float32)
+        if rng.random() < 0.3:
+            v[: n // 3] = v[1]  # a third tied
+        cases.append(v)
+    for v in cases:
+        assert _median(v) == float(np.median(v))
