@@ -105,9 +105,10 @@ def _median(vals: Float32Array) -> float:
 
     The middle rank(s) are bracketed between two values of a strided subsample, checked by counting, and
     selected among the values inside the bracket only (a few percent of them): one full selection over the
-    ~2e5 eigenvalues of a mask took about 4 % of a tracked frame (the texture detector's noise floor). When
-    the bracket misses (it cannot for a random subsample at six standard deviations of its rank, but the
-    image is not random), the whole array is selected: the result is exact either way. For an even count
+    ~2e5 eigenvalues of a mask took about 4 % of a tracked frame (the texture detector's noise floor). The
+    bracket spans six standard deviations of a random subsample's rank either side, but a strided subsample of
+    an image is not random (a periodic or sorted array defeats it): when the count shows that the bracket
+    misses, the whole array is selected, so the result is exact either way. For an even count
     the lower middle value is the largest below the upper one (`np.median` selects three ranks).
     """
     n = vals.size
