@@ -33,6 +33,7 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "unobserved_velocity_tau_s": 0.0,
     "gap_scan": False,
     "texture_weight": 2.0,  # flown on ArduCopter; 20 put a waypoint 17 cm off (docs/rack.md)
+    "robust": "paper",  # the weights it has flown; the library's default is Tukey's since 2026-11-27
     # not flown yet in the closed loop (library default since 2026-11-27 morning, stress bench only)
     "edge_strength_weight": 0.0,
     "texture_refine_obs": 20,

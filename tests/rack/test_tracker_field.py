@@ -103,13 +103,14 @@ def test_gap_scan_finds_decimetre_gap_errors(seed: int) -> None:
     assert np.all(res.score > 0)
 
 
-def _gap_step_after_a_shifted_frame(gap_walk_m: float) -> float:
+def _gap_step_after_a_shifted_frame(gap_walk_m: float, robust: str = "paper") -> float:
     """Largest gap change (m) when, after 12 frames of the true rack, one frame shows its last pipe 3 cm out."""
     true_model = RackModel.parallel(radii=[0.15, 0.2, 0.15, 0.175], gaps=[0.1, 0.1, 0.1], length=10.0)
     moved = RackModel.parallel(radii=[0.15, 0.2, 0.15, 0.175], gaps=[0.1, 0.1, 0.13], length=10.0)
     T = se3.make(so3.exp(np.radians([0.5, -0.4, 3.0])) @ R_DOWN, [0.8, 4.2, 2.3])
     rng = np.random.default_rng(4)
-    tr = RackTracker(true_model, CAM, RackTrackerConfig(estimate_gaps=True, gap_scan=False, gap_walk_m=gap_walk_m))
+    tr = RackTracker(true_model, CAM, RackTrackerConfig(estimate_gaps=True, gap_scan=False, gap_walk_m=gap_walk_m,
+                                                        robust=robust))
     tr.reset(T)
     scene = RackScene(true_model, seed=4, config=RackSceneConfig(total_spots=20))
     for k in range(12):
@@ -125,19 +126,24 @@ def test_estimated_gaps_remember_the_frames_before() -> None:
     edge) moves them less than a frame-by-frame solve (a huge per-frame walk) lets it: 1.9 against 3.0
     cm with the default walk (1 mm per frame, a short memory), nothing with 0.01 mm. The latter checks
     that the information accumulates over the frames (with one frame's variance as the anchor, as
-    first written, 0.01 mm still let the gaps move 1.8 cm)."""
+    first written, 0.01 mm still let the gaps move 1.8 cm). Under the paper's weights, which let the shifted
+    limbs pull; Tukey's biweight (the default) gives them no weight at all, and the gaps stay put even
+    frame by frame."""
     held = _gap_step_after_a_shifted_frame(RackTrackerConfig().gap_walk_m)
     free = _gap_step_after_a_shifted_frame(10.0)
     assert free > 0.02
     assert held < 0.8 * free
     assert _gap_step_after_a_shifted_frame(1e-5) < 0.1 * free
+    assert _gap_step_after_a_shifted_frame(10.0, robust="tukey") < 0.2 * free
 
 
 def test_a_stronger_ground_edge_beside_a_limb_loses_to_the_limb() -> None:
     """A dark gutter on the ground 6-10 px outside the outer limbs (a shadow, a drain): its edge is stronger
-    than the limb's. With the search's distance prior (`edge_distance_sigma_px`, default 4 px) or its
-    innermost-edge rule (`edge_innermost_ratio`, default 0.6) the tracker keeps the limbs; with neither
-    (the prior as wide as the search range, the strongest edge) it slid onto the gutter."""
+    than the limb's. Under the paper's weights (s = 1/(ν + |e|)), with the search's distance prior
+    (`edge_distance_sigma_px`, default 4 px) or its innermost-edge rule (`edge_innermost_ratio`, default 0.6)
+    the tracker keeps the limbs; with neither (the prior as wide as the search range, the strongest edge) it
+    slid onto the gutter. Tukey's biweight (the default) gives the samples on the gutter no weight and keeps
+    the limbs with or without either rule."""
     from companion.vision.rack.limbs import sample_limbs
 
     model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1] * 2, length=10.0)
@@ -157,15 +163,17 @@ def test_a_stronger_ground_edge_beside_a_limb_loses_to_the_limb() -> None:
         frames.append(img.astype(np.uint8))
     errors = {}
     sigma, ratio = RackTrackerConfig().edge_distance_sigma_px, RackTrackerConfig().edge_innermost_ratio
-    for key in ((0.0, 0.0), (sigma, 0.0), (0.0, ratio), (sigma, ratio)):
-        tr = RackTracker(model, CAM, RackTrackerConfig(edge_distance_sigma_px=key[0], edge_innermost_ratio=key[1],
-                                                        ground_points=0, max_texture_points=0))
-        tr.reset(T)
-        for k, img in enumerate(frames):
-            est = tr.track(img, 0.04 * k)
-        e = se3.log(se3.inverse(T) @ est.T_rack_cam)
-        errors[key] = (float(np.linalg.norm(est.T_rack_cam[:3, 3] - T[:3, 3])),
-                       float(np.degrees(np.linalg.norm(e[3:]))))
-    assert errors[(0.0, 0.0)][0] > 0.05, errors  # neither: the limbs went to the gutter
-    for key in ((sigma, 0.0), (0.0, ratio), (sigma, ratio)):
+    for robust in ("paper", "tukey"):
+        for key in ((0.0, 0.0), (sigma, 0.0), (0.0, ratio), (sigma, ratio)):
+            tr = RackTracker(model, CAM, RackTrackerConfig(edge_distance_sigma_px=key[0], edge_innermost_ratio=key[1],
+                                                            ground_points=0, max_texture_points=0, robust=robust))
+            tr.reset(T)
+            for k, img in enumerate(frames):
+                est = tr.track(img, 0.04 * k)
+            e = se3.log(se3.inverse(T) @ est.T_rack_cam)
+            errors[(robust, *key)] = (float(np.linalg.norm(est.T_rack_cam[:3, 3] - T[:3, 3])),
+                                      float(np.degrees(np.linalg.norm(e[3:]))))
+    assert errors[("paper", 0.0, 0.0)][0] > 0.05, errors  # paper's weights, neither rule: the limbs went to the gutter
+    for key in (("paper", sigma, 0.0), ("paper", 0.0, ratio), ("paper", sigma, ratio), ("tukey", 0.0, 0.0),
+                ("tukey", sigma, 0.0), ("tukey", 0.0, ratio), ("tukey", sigma, ratio)):
         assert errors[key][0] < 0.02 and errors[key][1] < 0.5, errors

@@ -71,7 +71,7 @@ def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None
     if kind == "paper":
         w = 1.0 / (nu_px + a)
     elif kind == "tukey":
-        scale = max(1.4826 * float(np.median(a)) if a.size else 0.0, 0.5 * nu_px)
+        scale = max(1.4826 * median_1d(a) if a.size else 0.0, 0.5 * nu_px)
         c = 4.685 * scale
         w = np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
     elif kind == "l2":

@@ -79,6 +79,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._prev_gray = None
         self._prev_gray_mean = None
         self._velocity = np.zeros(6)
+        self._velocity_known = False
         self._last_stamp = None
         self._frames = 0
         self._initialized = False
@@ -248,9 +249,13 @@ class RackTracker(TrackerSolve, TrackerMaps):
                     u = T[:3, :3][1, :]  # the rack's +y in the camera frame
                     decay = float(np.exp(-dt_s / cfg.unobserved_velocity_tau_s))
                     velocity[:3] += (decay * float(self._velocity[:3] @ u) - float(velocity[:3] @ u)) * u
+                    self._velocity_known = False  # along the pipes: a guess
+                else:
+                    self._velocity_known = cfg.velocity_prediction
                 self._velocity = velocity
             else:
                 self._velocity = np.zeros(6)
+                self._velocity_known = False
             self._T = T
             self._gaps = gaps
             if n_gap:
@@ -274,6 +279,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)
+            self._velocity_known = False
             self._lost_frames += 1
             if self._initialized and not cfg.estimate_gaps and 0 < cfg.relock_after_frames <= self._lost_frames:
                 # Rejected for a while: search wide again from the last pose, as after a rough reset (without

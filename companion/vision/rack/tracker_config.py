@@ -59,8 +59,13 @@ class RackTrackerConfig:
     `blur_sigma_px` an optional Gaussian pre-blur;
     `polarity_rate` the per-frame learning rate of each limb's edge polarity; `margin_px`
     image border kept free; `occlusion_margin_px` how far samples keep from occluding pipes.
-    Estimation: `robust` "paper" (s = 1/(ν + |e|), eq. 29), "tukey" or "l2"; `nu_px` the
-    paper's ν; `gate_px` residuals beyond this are dropped after the first iteration;
+    Estimation: `robust` "tukey" (Tukey's biweight, c = 4.685 x the residuals' MAD scale; the
+    default since 2026-11-27: a one-sided cluster of edges 2-4 px off, a ground or shadow edge beside a
+    limb, keeps weight under the paper's s = 1/(ν + |e|) and pulls the solve by a fraction of its
+    offset, where the biweight gives it none; in a frame's first iteration while the prediction has no
+    measured velocity the paper's weights are used, see `_solve`), "paper" (eq. 29, the paper's) or
+    "l2"; `nu_px` the paper's ν (with "tukey" half of it floors the MAD scale); `gate_px` residuals
+    beyond this are dropped after the first iteration;
     `max_iterations` / `min_iterations` per frame, stopping when the update is below
     `stop_translation_m` / `stop_rotation_rad` or moves the rendered edges by less than
     `stop_px` (median); `prior_*` the standard deviations of the per-iteration damping (a weak
@@ -138,7 +143,7 @@ class RackTrackerConfig:
     polarity_rate: float = 0.1
     margin_px: float = 6.0
     occlusion_margin_px: float = 3.0
-    robust: str = "paper"
+    robust: str = "tukey"
     nu_px: float = 1.0
     gate_px: float = 4.0
     max_iterations: int = 3

@@ -46,6 +46,9 @@ class TrackerState:
         self._prev_gray_mean: float | None = None
         self._gray_mean: float | None = None
         self._velocity = np.zeros(6)
+        # The prediction carries a measured motion (a velocity from two accepted frames in a row): until then
+        # a frame's first iteration weighs its residuals with the paper's weights (see `_solve`).
+        self._velocity_known = False
         self._last_stamp: float | None = None
         self._frames = 0
         self._initialized = False
