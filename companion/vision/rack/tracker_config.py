@@ -62,8 +62,9 @@ class RackTrackerConfig:
     Estimation: `robust` "tukey" (Tukey's biweight, c = 4.685 x the residuals' MAD scale; the
     default since 2026-11-27: a one-sided cluster of edges 2-4 px off, a ground or shadow edge beside a
     limb, keeps weight under the paper's s = 1/(ν + |e|) and pulls the solve by a fraction of its
-    offset, where the biweight gives it none; in a frame's first iteration while the prediction has no
-    measured velocity the paper's weights are used, see `_solve`), "paper" (eq. 29, the paper's) or
+    offset, where the biweight gives it none; the paper's weights are used in a frame's first iteration
+    while the prediction has no measured velocity and in a first frame's coarse search, see `_solve`),
+    "paper" (eq. 29, the paper's) or
     "l2"; `nu_px` the paper's ν (with "tukey" half of it floors the MAD scale); `gate_px` residuals
     beyond this are dropped after the first iteration;
     `max_iterations` / `min_iterations` per frame, stopping when the update is below
