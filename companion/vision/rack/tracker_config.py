@@ -64,9 +64,8 @@ class RackTrackerConfig:
     limb, keeps weight under the paper's s = 1/(ν + |e|) and pulls the solve by a fraction of its
     offset, where the biweight gives it none; the paper's weights are used in a frame's first iteration
     while the prediction has no measured velocity and in a first frame's coarse search, see `_solve`),
-    "paper" (eq. 29, the paper's) or
-    "l2"; `nu_px` the paper's ν (with "tukey" half of it floors the MAD scale); `gate_px` residuals
-    beyond this are dropped after the first iteration;
+    "paper" (eq. 29, the paper's) or "l2"; `nu_px` the paper's ν (with "tukey" half of it floors the
+    MAD scale); `gate_px` residuals beyond this are dropped after the first iteration;
     `max_iterations` / `min_iterations` per frame, stopping when the update is below
     `stop_translation_m` / `stop_rotation_rad` or moves the rendered edges by less than
     `stop_px` (median); `prior_*` the standard deviations of the per-iteration damping (a weak
