@@ -66,7 +66,10 @@ def _drive(url: str, upload: Path, screenshot: str | None) -> dict[str, Any]:
         n0 = int(el(By.ID, "video").get_attribute("data-frames") or 0)
         time.sleep(1.0)  # the browser's own pace: a second of live image
         seen["frames_per_s"] = int(el(By.ID, "video").get_attribute("data-frames") or 0) - n0
-        seen["image_width"] = driver.execute_script("return document.getElementById('video').naturalWidth")
+        # The page swaps the image's source on every frame; while the new one decodes naturalWidth is 0 (CI,
+        # 2026-11-27: read in that instant), so take the first reading of a decoded frame (the wait returns it).
+        seen["image_width"] = wait.until(
+            lambda d: d.execute_script("return document.getElementById('video').naturalWidth") or False)
         wait.until(lambda d: "GUIDED" in el(By.ID, "vehicle").text or "STABILIZE" in el(By.ID, "vehicle").text)
         seen["vehicle"] = el(By.ID, "vehicle").text
         # an upload with a wrong token is refused and not listed
