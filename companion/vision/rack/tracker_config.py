@@ -38,7 +38,12 @@ class RackTrackerConfig:
     alone then fix roll against sideways slide, which a frame-to-frame constraint can only hold
     (with a wrong z_g, bend) but never correct,
     `ground_min_corner_ratio` their corner-strength floor, `ground_height_walk_m` the per-frame
-    random walk allowed to z_g; `ground_trust_frames` the frames a new ground point's rows take to
+    random walk allowed to z_g; `ground_height_baseline_m` > 0 (0 = off) estimates z_g also from each
+    ground point's ray since it was anchored, up to 25 frames back, once the camera has moved that far
+    across the pipes (`ground_height.py`: the frame-to-frame z_g wanders by a metre, one frame's
+    translation making as much flow as a few hundredths of a degree of rotation error), and hands it to the
+    solver with a standard deviation of at least `ground_height_floor_m`; `ground_trust_frames` the frames
+    a new ground point's rows take to
     reach full weight (1 = at once); `ground_height_m` (rack z, m; None = estimated online from a rough
     first guess) the ground's height when known (the rack's support height above grade from its drawing,
     a survey, or a rangefinder), held on every frame with `ground_height_std_m`: flying along the pipes
@@ -131,6 +136,8 @@ class RackTrackerConfig:
     ground_along_only: bool = False
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
+    ground_height_baseline_m: float = 0.1
+    ground_height_floor_m: float = 0.5
     ground_trust_frames: int = 10
     ground_height_m: float | None = None
     ground_height_std_m: float = 0.05
@@ -210,6 +217,10 @@ class RackTrackerConfig:
             raise InputError(f"edge_strength_weight: must be in [0, 4] (0 = off), got {self.edge_strength_weight}")
         if not (np.isfinite(self.edge_innermost_ratio) and 0.0 <= self.edge_innermost_ratio <= 1.0):
             raise InputError(f"edge_innermost_ratio: must be in [0, 1] (0 = off), got {self.edge_innermost_ratio}")
+        if not (np.isfinite(self.ground_height_baseline_m) and self.ground_height_baseline_m >= 0.0):
+            raise InputError(f"ground_height_baseline_m: must be >= 0 (0 = off), got {self.ground_height_baseline_m}")
+        if not (np.isfinite(self.ground_height_floor_m) and self.ground_height_floor_m >= 0.0):
+            raise InputError(f"ground_height_floor_m: must be >= 0, got {self.ground_height_floor_m}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
         if self.max_texture_points < 0:

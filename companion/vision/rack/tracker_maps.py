@@ -15,6 +15,14 @@ from companion.vision.rack.ground import (
     pipe_silhouettes,
     plane_points,
 )
+from companion.vision.rack.ground_height import (
+    ANCHOR_FRAMES,
+    CONVERGED_STD_M,
+    SETTLE_FRAMES,
+    fit_ground_height,
+    off_ground,
+    update_ground_height,
+)
 from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.templates import align_templates, sample_patches, tangent_plane_warps
@@ -75,6 +83,7 @@ class TrackerMaps(TrackerState):
         `lk_in` from `_ground_lk_inputs`; `lk_out` (pixels (K, 2), ok (K,)) when the caller already tracked
         them (in one call with the texture points: each point's result does not depend on the others).
         """
+        self._anchor_tracked = None
         if lk_in is None or self._prev_gray is None:
             return None
         cfg = self.config
@@ -90,6 +99,8 @@ class TrackerMaps(TrackerState):
         mask = ground_mask(gray.shape[:2], polygons, cfg.margin_px)
         self._silhouettes_pred = (polygons, mask)
         ok &= on_ground(uv, mask)
+        if self._anchor_o.shape[0] == ok.size:
+            self._anchor_tracked = (self._anchor_o[ok], self._anchor_d[ok], self._anchor_age[ok])
         return self._ground_o, self._ground_d[ok], uv[ok], self._ground_age[ok]
 
     def _update_ground(
@@ -101,6 +112,7 @@ class TrackerMaps(TrackerState):
             return
         keep_uv = np.zeros((0, 2))
         keep_age = np.zeros(0)
+        anchors: tuple[FloatArray, FloatArray, FloatArray] | None = None
         i_z = int(last["i_z"])
         if i_z >= 0:
             # The ground lies below the pipes' support plane, and it does not move: a frame's estimate may
@@ -119,6 +131,11 @@ class TrackerMaps(TrackerState):
             if ground_uv is not None and ground_uv.shape[0] == ok.size:
                 keep_uv = ground_uv[ok]
                 keep_age = last["ground_age"][ok] + 1.0
+                if self._anchor_tracked is not None and self._anchor_tracked[0].shape[0] == ok.size:
+                    a_o, a_d, a_age = (a[ok] for a in self._anchor_tracked)
+                    on_plane = self._fuse_ground_height(T, keep_uv, a_o, a_d)
+                    keep_uv, keep_age = keep_uv[on_plane], keep_age[on_plane]
+                    anchors = (a_o[on_plane], a_d[on_plane], a_age[on_plane])
         # the predicted pose's silhouettes and ground mask (computed for tracking) are close enough for the margin
         if self._silhouettes_pred is None:
             polygons = pipe_silhouettes(T, self.camera, self._pipe_arrays(self._gaps))
@@ -132,6 +149,8 @@ class TrackerMaps(TrackerState):
             # points that come within the margin of a pipe.
             on = on_ground(keep_uv, mask)
             keep_uv, keep_age = keep_uv[on], keep_age[on]
+            if anchors is not None:
+                anchors = (anchors[0][on], anchors[1][on], anchors[2][on])
         if cfg.ground_height_m is not None:
             # A known ground height is a measurement on every frame, not a start: beams, a deck or
             # shadows at other depths would otherwise walk the estimate away from it.
@@ -153,6 +172,54 @@ class TrackerMaps(TrackerState):
         self._ground_age = np.concatenate([keep_age, np.zeros(new.shape[0])])
         self._ground_o = T[:3, 3].copy()
         self._ground_d = self.camera.unproject(uv) @ T[:3, :3].T if uv.shape[0] else np.zeros((0, 3))
+        self._update_anchors(T, anchors, keep_uv.shape[0], new.shape[0])
+
+    def _update_anchors(
+        self, T: FloatArray, kept: tuple[FloatArray, FloatArray, FloatArray] | None, n_keep: int, n_new: int
+    ) -> None:
+        """Anchor rays of this frame's ground points (`_ground_uv`: the `n_keep` kept ones, then `n_new` new ones):
+        kept anchors age by a frame; new points, and points anchored `ANCHOR_FRAMES` ago (the attitude error
+        between two poses grows with the time between them), are anchored at this pose."""
+        if kept is None:
+            kept = (np.zeros((n_keep, 3)), np.zeros((n_keep, 3)), np.full(n_keep, np.inf))
+        a_o = np.vstack([kept[0], np.zeros((n_new, 3))])
+        a_d = np.vstack([kept[1], np.zeros((n_new, 3))])
+        a_age = np.concatenate([kept[2] + 1.0, np.full(n_new, np.inf)])
+        fresh = a_age > ANCHOR_FRAMES
+        a_o[fresh] = T[:3, 3]
+        a_d[fresh] = self._ground_d[fresh]
+        a_age[fresh] = 0.0
+        self._anchor_o, self._anchor_d, self._anchor_age = a_o, a_d, a_age
+
+    def _fuse_ground_height(
+        self, T: FloatArray, uv: FloatArray, anchor_o: FloatArray, anchor_d: FloatArray
+    ) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Update the long-baseline ground height (`ground_height.py`) with this frame's kept points, hand it to the
+        solver when surer than the frame-to-frame z_g, and return which points (K,) lie on the ground (all of them
+        until the height is known to `CONVERGED_STD_M`).
+
+        The solver gets it with a standard deviation of at least `ground_height_floor_m`: the fit follows each
+        run's slow roll drift (a relative roll between two poses and a wrong height make the same flow across
+        the pipes, 0-12 % on the stress bench), and held tighter that error turned into roll and sideways slide.
+        """
+        cfg = self.config
+        keep = np.ones(uv.shape[0], dtype=bool)
+        if cfg.ground_height_baseline_m <= 0.0 or cfg.ground_height_m is not None or self._z_g is None \
+                or self._frames < SETTLE_FRAMES:
+            return keep
+        if self._zf is None:
+            self._zf, self._zf_var, self._zf_rejected = float(self._z_g), 2.0**2, 0
+        fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m)
+        if fit is not None:
+            self._zf, self._zf_var, self._zf_rejected = update_ground_height(self._zf, self._zf_var, fit,
+                                                                             self._zf_rejected)
+        self._zf_var += cfg.ground_height_walk_m**2
+        handed_var = max(self._zf_var, cfg.ground_height_floor_m**2)
+        if handed_var < self._z_g_var:
+            self._z_g, self._z_g_var = min(self._zf, 0.0), handed_var
+        if self._zf_var < CONVERGED_STD_M**2:
+            keep = ~off_ground(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.gate_px)
+        return keep
 
     def _pipe_polygons(self, samples: LimbSamples) -> list[FloatArray]:
         """Image quadrilaterals of the pipes between their two clipped limb segments."""

@@ -168,6 +168,15 @@ class TrackerState:
         self._ground_age = np.zeros(0)  # frames each has fitted the ground plane (see `ground_trust_frames`)
         self._z_g: float | None = None
         self._z_g_var = 0.0
+        # Long-baseline rays of the ground points (`ground_height.py`): anchor camera centres (K, 3), rays (K, 3)
+        # and frames since anchored (K,), in step with `_ground_uv`; this frame's tracked ones; the height filter.
+        self._anchor_o = np.zeros((0, 3))
+        self._anchor_d = np.zeros((0, 3))
+        self._anchor_age = np.zeros(0)
+        self._anchor_tracked: tuple[FloatArray, FloatArray, FloatArray] | None = None
+        self._zf: float | None = None
+        self._zf_var = 0.0
+        self._zf_rejected = 0
 
     def _ref_patch_size(self) -> int:
         """Side of the stored reference patches: room for the window scaled by up to ~1.6."""

@@ -1,0 +1,181 @@
+"""The ground's height from its points seen across a long sideways baseline (rack frame, metres).
+
+Frame to frame, a ground point's flow is the camera's translation over the ground's depth plus the
+camera's rotation, and one frame's translation (a couple of centimetres) makes as much flow at the ground's
+depth as a few hundredths of a degree of rotation error: the per-frame solve's z_g wanders by a metre and
+more while the same points at the true poses fit the true height to the centimetre (docs/rack.md,
+"Fifteenth session on #14"). Over tens of frames the translation grows while the attitude error *between*
+the two poses does not (it is mostly slow), so a ground point's ray from the pose it was anchored at,
+against where it is seen now, fixes the height. Only the component of the residual that the camera's
+motion *across* the pipes makes is used: across the pipes the limbs measure the translation in metres,
+while along them the tracker's own translation came from the ground's flow scaled by the very height being
+estimated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.camera import PinholeCamera
+from companion.checks import FloatArray
+from companion.vision.rack.motion import median_1d
+
+BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
+
+ANCHOR_FRAMES = 25  # a point is re-anchored after this many frames (the poses' relative error grows with time)
+SETTLE_FRAMES = 50  # no fit before: anchors spanning the start's transient fitted the wrong height confidently
+MEMORY = 10.0  # consecutive fits share anchors and poses: each counts this many times less than it says
+CONVERGED_STD_M = 0.1  # below this the filter's height tests each point for lying on the ground
+
+_ITERATIONS = 4
+_TUKEY_C = 4.685
+_MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
+_MIN_POINTS = 8
+# The two poses' relative error across the pipes (m): the limbs' sideways position and the roll between the
+# poses at the ground's depth. Shared by every point, it bounds the fit's precision whatever their number:
+# the height's relative error is this over the baseline.
+_BASELINE_ERROR_M = 0.005
+
+
+@dataclass(frozen=True)
+class GroundHeightFit:
+    """One frame's fit: height z_m (rack z, m), its variance var_m2 (m²) and the points that carried it."""
+
+    z_m: float
+    var_m2: float
+    n_points: int
+
+
+def across_residuals(
+    T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, uv: FloatArray,
+    z_m: float, direction: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray]:
+    """Residuals e (K,) (px), their derivative de/dz (K,) (px per m), validity (K,) and image directions (K, 2).
+
+    Point k lies where its anchor ray (camera centre `anchor_o[k]`, direction `anchor_d[k]`, rack frame) meets the
+    plane {z = `z_m`}; projected at pose `T_rack_cam` it should land on `uv[k]` (px). e is the miss along the
+    unit image direction in which a move of the camera along rack +x shifts that point (or along `direction`
+    when given); de/dz holds that direction fixed, as Gauss-Newton does (it turns slowly with z). Invalid
+    (e = de = 0): rays that do not descend to the plane or points behind the camera.
+    """
+    R = T_rack_cam[:3, :3]
+    o = T_rack_cam[:3, 3]
+    down = anchor_d[:, 2] < -1e-6
+    dz = np.where(down, anchor_d[:, 2], -1.0)
+    t = (z_m - anchor_o[:, 2]) / dz
+    X = anchor_o + t[:, None] * anchor_d
+    p_cam = (X - o) @ R
+    ok = down & (t > 0.0) & (p_cam[:, 2] > 1e-3)
+    uv_p, J = camera.project_with_jacobian(np.where(ok[:, None], p_cam, 1.0))
+    if direction is None:
+        direction = -np.einsum("nij,j->ni", J, R[0, :])  # a camera step along rack +x moves it by -J Rᵀ e_x
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+    e = np.einsum("ni,ni->n", direction, uv - uv_p)
+    dX_dz = anchor_d / dz[:, None]
+    de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, dX_dz @ R))
+    return np.where(ok, e, 0.0), np.where(ok, de, 0.0), np.asarray(ok), direction
+
+
+def fit_ground_height(
+    T_rack_cam: FloatArray,
+    camera: PinholeCamera,
+    anchor_o: FloatArray,
+    anchor_d: FloatArray,
+    uv: FloatArray,
+    z0_m: float,
+    min_baseline_m: float,
+) -> GroundHeightFit | None:
+    """Height z of the plane {z = const} (rack frame) that best explains ground points seen now at `uv` (K, 2)
+    from pose `T_rack_cam` and before along rays `anchor_d` (K, 3) from camera centres `anchor_o` (K, 3).
+
+    Only points whose anchor lies at least `min_baseline_m` across the pipes (rack x) from the camera count,
+    by the residual component of `across_residuals`. Gauss-Newton from `z0_m` with Tukey's biweight; the
+    variance is at least what a 5 mm relative error of the two poses makes over the median baseline. None with
+    fewer than 8 such points or no fit.
+    """
+    o = T_rack_cam[:3, 3]
+    use = np.abs(o[0] - anchor_o[:, 0]) >= min_baseline_m
+    if np.count_nonzero(use) < _MIN_POINTS:
+        return None
+    ao, ad, q = anchor_o[use], anchor_d[use], uv[use]
+    z = float(z0_m)
+    top = float(np.min(ao[:, 2])) - 0.05  # the plane stays below every anchor camera
+    var = np.inf
+    n_used = 0
+    for _ in range(_ITERATIONS):
+        e, de, ok, _ = across_residuals(T_rack_cam, camera, ao, ad, q, z)
+        if np.count_nonzero(ok) < _MIN_POINTS:
+            return None
+        e, de = e[ok], de[ok]
+        scale = max(_MIN_SCALE_PX, 1.4826 * median_1d(np.abs(e)))
+        u = e / (_TUKEY_C * scale)
+        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        info = float(np.sum(w * de * de))
+        if not info > 0.0:
+            return None
+        step = -float(np.sum(w * de * e)) / info
+        z = min(z + float(np.clip(step, -1.0, 1.0)), top)
+        n_used = int(np.count_nonzero(w > 0.0))
+        dof = max(float(np.sum(w)) - 1.0, 1.0)
+        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX**2) / info
+    if n_used < _MIN_POINTS or not np.isfinite(z):
+        return None
+    depth = float(np.median(ao[:, 2])) - z
+    baseline = float(np.median(np.abs(o[0] - ao[:, 0])))
+    var = max(var, (depth * _BASELINE_ERROR_M / baseline) ** 2)
+    return GroundHeightFit(z_m=z, var_m2=var, n_points=n_used)
+
+
+def update_ground_height(
+    z_m: float, var_m2: float, fit: GroundHeightFit, rejected: int, reset_after: int = 25
+) -> tuple[float, float, int]:
+    """One filter step: (height, variance, consecutive rejections) after a frame's `fit`.
+
+    A fit counts `MEMORY` times less than its own variance says (consecutive frames share their anchors and
+    their poses' errors). A fit more than three standard deviations from the estimate is rejected (an
+    overhead beam's corners, the deck); after `reset_after` rejections in a row the ground has changed and
+    the filter restarts from the fit.
+    """
+    v = MEMORY * fit.var_m2
+    innov = fit.z_m - z_m
+    if innov * innov > 9.0 * (var_m2 + v):
+        if rejected + 1 >= reset_after:
+            return fit.z_m, v, 0
+        return z_m, var_m2, rejected + 1
+    k = var_m2 / (var_m2 + v)
+    return z_m + k * innov, (1.0 - k) * var_m2, 0
+
+
+def off_ground(
+    T_rack_cam: FloatArray,
+    camera: PinholeCamera,
+    anchor_o: FloatArray,
+    anchor_d: FloatArray,
+    uv: FloatArray,
+    z_m: float,
+    gate_px: float,
+    parallax_fraction: float = 0.3,
+) -> BoolArray:
+    """Points (K,) seen at `uv` (K, 2) that do not lie on the ground {z = `z_m`} (rack frame): their anchor ray
+    (`anchor_o`, `anchor_d`, (K, 3) each) at that height projects, at pose `T_rack_cam`, more than `gate_px`
+    plus `parallax_fraction` of the parallax the camera's move since the anchor gives a ground point away.
+
+    A corner on an unmodelled structure nearer the camera (an overhead beam 1.4 m below it, the ground 4.7 m)
+    moves several times as far as the ground's; frame to frame the difference is a few pixels, near the noise,
+    but from its anchor it grows with the baseline while a ground point's error stays a small fraction of it.
+    """
+    o = T_rack_cam[:3, 3]
+    R = T_rack_cam[:3, :3]
+    down = anchor_d[:, 2] < -1e-6
+    t = (z_m - anchor_o[:, 2]) / np.where(down, anchor_d[:, 2], -1.0)
+    X = anchor_o + np.where(down, t, 0.0)[:, None] * anchor_d
+    p_cam = (X - o) @ R
+    front = down & (t > 0.0) & (p_cam[:, 2] > 1e-3)
+    uv_p = camera.project(np.where(front[:, None], p_cam, 1.0))
+    err = np.linalg.norm(uv - uv_p, axis=1)
+    depth = max(float(o[2]) - z_m, 1e-3)
+    parallax = camera.fx * np.linalg.norm(o - anchor_o, axis=1) / depth
+    return np.asarray(front & (err > gate_px + parallax_fraction * parallax))

@@ -1,0 +1,137 @@
+"""The ground's height from long sideways baselines: derivative, fit, outlier test, filter, and in the tracker."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.camera import PinholeCamera
+from companion.errors import InputError
+from companion.geometry import se3, so3
+from companion.vision.rack.ground_height import (
+    MEMORY,
+    GroundHeightFit,
+    across_residuals,
+    fit_ground_height,
+    off_ground,
+    update_ground_height,
+)
+from tests.numdiff import central_jacobian
+
+CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def _two_views(rng: np.random.Generator, shift_m: tuple[float, float], n: int = 60, z_true: float = -2.0,
+               noise_px: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ground points at z_true seen from an anchor pose and from the anchor moved by `shift_m` (rack x, y):
+    (current pose, anchor centres (n, 3), anchor rays (n, 3), current pixels (n, 2), the points (n, 3))."""
+    T_a = se3.make(so3.exp(np.radians([0.4, -0.3, 3.0])) @ R_DOWN, [0.5, 4.0, 2.4])
+    T_b = se3.make(so3.exp(np.radians([-0.2, 0.5, 2.0])) @ R_DOWN, [0.5 + shift_m[0], 4.0 + shift_m[1], 2.38])
+    uv_a = rng.uniform([40, 40], [680, 440], (n, 2))
+    d = CAM.unproject(uv_a) @ T_a[:3, :3].T
+    X = T_a[:3, 3] + ((z_true - T_a[2, 3]) / d[:, 2])[:, None] * d
+    uv_b = CAM.project((X - T_b[:3, 3]) @ T_b[:3, :3]) + rng.normal(0.0, noise_px, (n, 2))
+    return T_b, np.tile(T_a[:3, 3], (n, 1)), d, uv_b, X
+
+
+def test_across_residual_derivative_matches_central_differences(rng: np.random.Generator) -> None:
+    T, o, d, uv, _ = _two_views(rng, (0.3, 0.1), n=8)
+    uv = uv + rng.normal(0.0, 3.0, uv.shape)  # away from the solution, where the derivative matters
+    for z in (-2.6, -1.7):
+        _, de, ok, direction = across_residuals(T, CAM, o, d, uv, z)
+        assert ok.all()
+        np.testing.assert_allclose(np.linalg.norm(direction, axis=1), 1.0)
+
+        def e_at(p: np.ndarray, held: np.ndarray = direction) -> np.ndarray:
+            return across_residuals(T, CAM, o, d, uv, float(p[0]), held)[0]
+
+        num = central_jacobian(e_at, np.array([z]))
+        np.testing.assert_allclose(de, num[:, 0], rtol=1e-6, atol=1e-7)
+
+
+def test_a_sideways_baseline_fixes_the_height_from_a_wrong_start(rng: np.random.Generator) -> None:
+    """30 cm across the pipes, 0.2 px of noise: the plane's height to a centimetre from a start 1.5 m off; the
+    variance is at least what a 5 mm relative pose error makes over the baseline (the points' number cannot
+    beat the poses' shared error)."""
+    T, o, d, uv, _ = _two_views(rng, (0.3, 0.05))
+    fit = fit_ground_height(T, CAM, o, d, uv, z0_m=-3.5, min_baseline_m=0.1)
+    assert fit is not None
+    assert abs(fit.z_m + 2.0) < 0.01
+    assert fit.n_points >= 55
+    depth = 2.4 + 2.0
+    assert np.sqrt(fit.var_m2) >= 0.99 * depth * 0.005 / 0.3
+
+
+def test_motion_along_the_pipes_alone_gives_no_height(rng: np.random.Generator) -> None:
+    """Along the pipes the tracker's own translation came from this ground's flow: no fit from it."""
+    T, o, d, uv, _ = _two_views(rng, (0.02, 0.5))
+    assert fit_ground_height(T, CAM, o, d, uv, z0_m=-3.5, min_baseline_m=0.1) is None
+
+
+def test_points_on_a_nearer_structure_neither_move_the_fit_nor_pass_the_test(rng: np.random.Generator) -> None:
+    """A third of the corners on an overhead beam 1.2 m below the camera: the biweight fits the ground through
+    them, and from their anchors they miss the ground's projection by far more than the gate plus 30 % of the
+    parallax, while the ground's points do not."""
+    T, o, d, uv, _ = _two_views(rng, (0.3, 0.05), n=90)
+    beam = np.arange(90) < 30
+    T_a_o = o[0]
+    # the beam's corners: the same anchor rays, met at z = 1.2 instead of the ground
+    Xb = T_a_o + ((1.2 - T_a_o[2]) / d[beam, 2])[:, None] * d[beam]
+    uv = uv.copy()
+    uv[beam] = CAM.project((Xb - T[:3, 3]) @ T[:3, :3])
+    fit = fit_ground_height(T, CAM, o, d, uv, z0_m=-2.5, min_baseline_m=0.1)
+    assert fit is not None and abs(fit.z_m + 2.0) < 0.02
+    flagged = off_ground(T, CAM, o, d, uv, fit.z_m, gate_px=4.0)
+    assert flagged[beam].all()
+    assert not flagged[~beam].any()
+
+
+def test_the_filter_discounts_each_fit_gates_outliers_and_restarts_after_a_run_of_them() -> None:
+    fit = GroundHeightFit(z_m=-2.0, var_m2=0.01, n_points=40)
+    z, var, rej = update_ground_height(-2.5, 0.1, fit, 0)
+    k = 0.1 / (0.1 + MEMORY * 0.01)
+    assert z == pytest.approx(-2.5 + k * 0.5) and var == pytest.approx((1 - k) * 0.1) and rej == 0
+    far = GroundHeightFit(z_m=-0.5, var_m2=0.0001, n_points=40)  # a beam: 1.5 m off, far outside 3 sigma
+    z, var, rej = update_ground_height(-2.0, 0.0004, far, 0)
+    assert (z, var, rej) == (-2.0, 0.0004, 1)
+    for _ in range(23):
+        z, var, rej = update_ground_height(z, var, far, rej)
+    assert rej == 24 and z == -2.0
+    z, var, rej = update_ground_height(z, var, far, rej)  # the 25th in a row: the ground has changed
+    assert (z, var, rej) == (-0.5, pytest.approx(MEMORY * 0.0001), 0)
+
+
+def test_the_tracker_learns_the_grounds_height_flying_across_the_pipes() -> None:
+    """Back and forth across three pipes over natural ground 2 m below their support: after the settling frames
+    the long-baseline estimate holds the height within 10 cm, where the frame-to-frame z_g started from a
+    first guess over a metre off. Off (`ground_height_baseline_m` 0) there is no estimate; a negative
+    baseline or floor is refused."""
+    from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
+    from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.1], length=10.0)
+    scene = FieldRackScene(model, seed=6, config=FieldSceneConfig(ground="natural", num_spots=30, ground_z_m=-2.0,
+                                                                  jpeg_quality=0))
+    T0 = se3.make(so3.exp(np.radians([0.3, -0.2, 2.0])) @ R_DOWN, [0.25, 4.0, 2.3])
+    estimates = {}
+    for baseline in (0.1, 0.0):
+        tr = RackTracker(model, CAM, RackTrackerConfig(ground_height_baseline_m=baseline))
+        tr.reset(T0)
+        rng = np.random.default_rng(7)
+        first_guess = None
+        for k in range(110):
+            x = 0.3 * np.sin(2 * np.pi * k / 80.0)  # +-30 cm across the pipes, up to 0.6 m/s
+            T_k = se3.make(T0[:3, :3], T0[:3, 3] + [x, 0.0, 0.0])
+            assert tr.track(scene.render(T_k, CAM, noise_std=3.0, rng=rng), k / 25.0).ok
+            if first_guess is None:
+                first_guess = tr._z_g
+        estimates[baseline] = (first_guess, tr._zf, np.sqrt(tr._zf_var))
+    first_guess, zf, zf_std = estimates[0.1]
+    assert first_guess is not None and abs(first_guess + 2.0) > 1.0
+    assert zf is not None and abs(zf + 2.0) < 0.1 and zf_std < 0.1
+    assert estimates[0.0][1] is None
+    with pytest.raises(InputError, match="ground_height_baseline_m"):
+        RackTrackerConfig(ground_height_baseline_m=-0.1)
+    with pytest.raises(InputError, match="ground_height_floor_m"):
+        RackTrackerConfig(ground_height_floor_m=-1.0)
