@@ -28,13 +28,14 @@ from companion.vision.rack.motion import pose_jacobian
 def plane_points(o_rack: FloatArray, d_rack: FloatArray, z_g: float) -> tuple[FloatArray, FloatArray]:
     """Intersections X (K, 3) of rays o + t d (rack frame) with the plane z = z_g, and dX/dz_g (K, 3).
 
-    Rays that do not point down towards the plane give NaN rows.
+    `o_rack` is one origin (3,) for all rays or one per ray (K, 3). Rays that do not point down towards the
+    plane give NaN rows.
     """
     dz = d_rack[:, 2]
     ok = dz < -1e-6
     dz_s = np.where(ok, dz, np.nan)
-    t = (z_g - o_rack[2]) / dz_s
-    X = o_rack[None, :] + t[:, None] * d_rack
+    t = (z_g - o_rack[..., 2]) / dz_s
+    X = o_rack + t[:, None] * d_rack
     X[~(t > 0)] = np.nan
     return X, d_rack / dz_s[:, None]
 

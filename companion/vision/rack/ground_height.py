@@ -21,6 +21,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.ground import plane_points
 from companion.vision.rack.motion import median_1d
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
@@ -62,21 +63,26 @@ def across_residuals(
     (e = de = 0): rays that do not descend to the plane or points behind the camera.
     """
     R = T_rack_cam[:3, :3]
-    o = T_rack_cam[:3, 3]
-    down = anchor_d[:, 2] < -1e-6
-    dz = np.where(down, anchor_d[:, 2], -1.0)
-    t = (z_m - anchor_o[:, 2]) / dz
-    X = anchor_o + t[:, None] * anchor_d
-    p_cam = (X - o) @ R
-    ok = down & (t > 0.0) & (p_cam[:, 2] > 1e-3)
-    uv_p, J = camera.project_with_jacobian(np.where(ok[:, None], p_cam, 1.0))
+    X, dX_dz, ok = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
+    p_cam = np.where(ok[:, None], (X - T_rack_cam[:3, 3]) @ R, 1.0)
+    uv_p, J = camera.project_with_jacobian(p_cam)
     if direction is None:
         direction = -np.einsum("nij,j->ni", J, R[0, :])  # a camera step along rack +x moves it by -J Rᵀ e_x
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
     e = np.einsum("ni,ni->n", direction, uv - uv_p)
-    dX_dz = anchor_d / dz[:, None]
-    de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, dX_dz @ R))
-    return np.where(ok, e, 0.0), np.where(ok, de, 0.0), np.asarray(ok), direction
+    de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, np.where(ok[:, None], dX_dz, 0.0) @ R))
+    return np.where(ok, e, 0.0), np.where(ok, de, 0.0), ok, direction
+
+
+def _anchored_points(
+    T_rack_cam: FloatArray, anchor_o: FloatArray, anchor_d: FloatArray, z_m: float
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """The anchor rays' points on the plane {z = `z_m`} (K, 3), their dX/dz (K, 3) and which are usable (K,):
+    rays that reach the plane, in front of the camera at pose `T_rack_cam` (NaN rows elsewhere)."""
+    X, dX_dz = plane_points(anchor_o, anchor_d, z_m)
+    p_z = (X - T_rack_cam[:3, 3]) @ T_rack_cam[:3, 2]
+    ok = np.isfinite(X[:, 0]) & (np.nan_to_num(p_z, nan=0.0) > 1e-3)
+    return X, dX_dz, np.asarray(ok)
 
 
 def fit_ground_height(
@@ -168,13 +174,8 @@ def off_ground(
     but from its anchor it grows with the baseline while a ground point's error stays a small fraction of it.
     """
     o = T_rack_cam[:3, 3]
-    R = T_rack_cam[:3, :3]
-    down = anchor_d[:, 2] < -1e-6
-    t = (z_m - anchor_o[:, 2]) / np.where(down, anchor_d[:, 2], -1.0)
-    X = anchor_o + np.where(down, t, 0.0)[:, None] * anchor_d
-    p_cam = (X - o) @ R
-    front = down & (t > 0.0) & (p_cam[:, 2] > 1e-3)
-    uv_p = camera.project(np.where(front[:, None], p_cam, 1.0))
+    X, _, front = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
+    uv_p = camera.project(np.where(front[:, None], (X - o) @ T_rack_cam[:3, :3], 1.0))
     err = np.linalg.norm(uv - uv_p, axis=1)
     depth = max(float(o[2]) - z_m, 1e-3)
     parallax = camera.fx * np.linalg.norm(o - anchor_o, axis=1) / depth
