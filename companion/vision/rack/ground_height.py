@@ -32,10 +32,6 @@ MEMORY = 10.0  # consecutive fits share anchors and poses: each counts this many
 CONVERGED_STD_M = 0.1  # below this the filter's height tests each point for lying on the ground
 
 _ITERATIONS = 4
-# Gauss-Newton stops once a step is below this (m): a tenth of the smallest standard deviation a fit can
-# claim (5 mm of relative pose error over a 1 m baseline at 4-5 m depth), and it starts from the filter's
-# estimate, so most fits stop after two or three steps (the 3rd / 4th steps: 0.15 / 0.02 mm by the median).
-_STOP_M = 0.002
 _TUKEY_C = 4.685
 _MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
 _MIN_POINTS = 8
@@ -104,7 +100,7 @@ def fit_ground_height(
     Only points whose anchor lies at least `min_baseline_m` across the pipes (rack x) from the camera count,
     by the residual component of `across_residuals`. Gauss-Newton from `z0_m` with Tukey's biweight; the
     variance is at least what a 5 mm relative error of the two poses makes over the median baseline. None with
-    fewer than 8 such points or no fit. Up to 4 steps, fewer once a step is below 2 mm.
+    fewer than 8 such points or no fit.
     """
     o = T_rack_cam[:3, 3]
     use = np.abs(o[0] - anchor_o[:, 0]) >= min_baseline_m
@@ -131,8 +127,6 @@ def fit_ground_height(
         n_used = int(np.count_nonzero(w > 0.0))
         dof = max(float(np.sum(w)) - 1.0, 1.0)
         var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX**2) / info
-        if abs(step) < _STOP_M:
-            break
     if n_used < _MIN_POINTS or not np.isfinite(z):
         return None
     depth = float(np.median(ao[:, 2])) - z
