@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import pickle
 import sys
 from pathlib import Path
 from typing import Any
@@ -46,31 +45,24 @@ def render_start(ground: str, seed: int, n_frames: int, cache: Path | None) -> d
     """The first `n_frames` frames of the wrong-gap cell over `ground` for `seed`, as the stress bench renders a
     run (the same random draws in the same order; no gain steps or beams in this cell)."""
     name = f"dev_wronggaps_{ground}"
-    path = None if cache is None else cache / f"{name}_{seed}_{n_frames}.pkl"
-    if path is not None and path.exists():
-        with path.open("rb") as f:
-            data: dict[str, Any] = pickle.load(f)
-        return data
-    cell = dict(rs.CELLS[CELL], ground=ground)
-    cell_seed = int(hashlib.sha256(f"{name}/{seed}".encode()).hexdigest()[:8], 16)
-    rng = np.random.default_rng(cell_seed)
-    model = rs.build_rack(cell["rack"])
-    cfg = FieldSceneConfig(num_spots=cell["F"], spots_y_m=cell.get("spots_y"), ground=ground, overhead_beams_y_m=())
-    scene = FieldRackScene(model, seed=cell_seed, config=cfg)
-    poses = rs.make_trajectory(cell["traj"], model, rng)
-    frames = []
-    for k in range(n_frames):
-        du, dv = scene.image_motion_px(poses[k], poses[k + 1], rs.CAMERA)
-        frames.append(scene.render_jpeg(poses[k], rs.CAMERA, rs.NOISE_STD, rs.BLUR_PX, rng, gain=1.0,
-                                        motion_blur_px=(rs.EXPOSURE_FRACTION * du, rs.EXPOSURE_FRACTION * dv)))
-    run = {"poses": poses[:n_frames], "frames": frames, "cell_seed": cell_seed}
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        with tmp.open("wb") as f:
-            pickle.dump(run, f)
-        tmp.replace(path)
-    return run
+
+    def make() -> dict[str, Any]:
+        cell = dict(rs.CELLS[CELL], ground=ground)
+        cell_seed = int(hashlib.sha256(f"{name}/{seed}".encode()).hexdigest()[:8], 16)
+        rng = np.random.default_rng(cell_seed)
+        model = rs.build_rack(cell["rack"])
+        cfg = FieldSceneConfig(num_spots=cell["F"], spots_y_m=cell.get("spots_y"), ground=ground,
+                               overhead_beams_y_m=())
+        scene = FieldRackScene(model, seed=cell_seed, config=cfg)
+        poses = rs.make_trajectory(cell["traj"], model, rng)
+        frames = []
+        for k in range(n_frames):
+            du, dv = scene.image_motion_px(poses[k], poses[k + 1], rs.CAMERA)
+            frames.append(scene.render_jpeg(poses[k], rs.CAMERA, rs.NOISE_STD, rs.BLUR_PX, rng, gain=1.0,
+                                            motion_blur_px=(rs.EXPOSURE_FRACTION * du, rs.EXPOSURE_FRACTION * dv)))
+        return {"poses": poses[:n_frames], "frames": frames, "cell_seed": cell_seed}
+
+    return rs.cached_pickle(None if cache is None else cache / f"{name}_{seed}_{n_frames}.pkl", make)
 
 
 def track_start(run: dict[str, Any], overrides: dict[str, Any]) -> tuple[bool, np.ndarray, float]:
@@ -100,9 +92,13 @@ def main() -> None:
     ap.add_argument("--cache", default="/tmp/rack_gap_scan_cache", help="frame cache ('' = none)")
     args = ap.parse_args()
     first, _, last = args.seeds.partition(":")
-    seeds = range(int(first), int(last))
+    try:
+        seeds = range(int(first), int(last))
+    except ValueError:
+        seeds = range(0)
     if args.frames < 1 or len(seeds) == 0:
-        raise SystemExit("rack_gap_scan: --frames must be >= 1 and --seeds a non-empty range first:last")
+        raise SystemExit(f"rack_gap_scan: --frames must be >= 1 (got {args.frames}) and --seeds a non-empty range "
+                         f"first:last (got {args.seeds!r})")
     cache = Path(args.cache) if args.cache else None
     overrides = parse_set(args.set)
     out: dict[str, Any] = {"benchmark": "rack_gap_scan", "cell": CELL, "seeds": [seeds.start, seeds.stop],

@@ -38,6 +38,7 @@ import json  # noqa: E402
 import pickle  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -202,13 +203,14 @@ def render_run(name: str, cell: dict[str, Any], seed: int) -> dict[str, Any]:
     return {"poses": poses, "frames": frames, "distort": bool(cell.get("distort")), "cell_seed": cell_seed}
 
 
-def load_run(name: str, cell: dict[str, Any], seed: int, cache: Path | None) -> dict[str, Any]:
-    path = None if cache is None else cache / f"{name}_s{seed}_{_source_key(cell, seed)}.pkl"
+def cached_pickle(path: Path | None, make: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """The dict pickled at `path`, or `make()` stored there (written whole, then renamed: an interrupted run
+    leaves no half file); `path` None: `make()`, not stored."""
     if path is not None and path.exists():
         with path.open("rb") as f:
             data: dict[str, Any] = pickle.load(f)
         return data
-    run = render_run(name, cell, seed)
+    run = make()
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
@@ -216,6 +218,11 @@ def load_run(name: str, cell: dict[str, Any], seed: int, cache: Path | None) -> 
             pickle.dump(run, f)
         tmp.replace(path)
     return run
+
+
+def load_run(name: str, cell: dict[str, Any], seed: int, cache: Path | None) -> dict[str, Any]:
+    path = None if cache is None else cache / f"{name}_s{seed}_{_source_key(cell, seed)}.pkl"
+    return cached_pickle(path, lambda: render_run(name, cell, seed))
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
