@@ -77,8 +77,8 @@ def scan_gaps(
     pipe's score at s is min(m_left, m_right), m = mean |gradient| over the limb's samples (grey
     levels per 2 px, either polarity, sample by sample) / (1 + std over the samples of the grey level
     `inside_px` inside the limb / `inside_scale`); the shifts maximizing the summed score with every gap
-    at least `min_gap_m` (m) are taken where they reach `min_score` and both limbs have at least 4
-    samples in view, else that gap is kept.
+    at least `min_gap_m` (m; or the model's own gap where that is smaller) are taken where they reach
+    `min_score` and both limbs have at least 4 samples in view, else that gap is kept.
     """
     out = np.asarray(gaps, dtype=np.float64).copy()
     score_out = np.zeros(out.size)
@@ -134,12 +134,13 @@ def scan_gaps(
 def _ordered_best(
     gaps: FloatArray, shifts: FloatArray, table: FloatArray, min_gap_m: float = 0.0
 ) -> np.ndarray[Any, np.dtype[np.intp]]:
-    """Shift index per gap maximizing the summed score with every gap at least `min_gap_m` (no overlap).
+    """Shift index per gap maximizing the summed score with no gap below min(`min_gap_m`, the model's own
+    gap) (no overlap, and no limb shared by two pipes; a rack drawn with touching pipes stays drawn so).
 
     Dynamic programming over the gaps in order: the best total for gap k at shift j is its score plus
-    the best total of gap k-1 over the shifts that leave d̄_{k-1} + `min_gap_m` <= d̄_k (and d̄_0 >=
-    `min_gap_m`). Without this a pipe can take its neighbour's limbs (widths differ by a few
-    centimetres only).
+    the best total of gap k-1 over the shifts that leave d̄_{k-1} + floor_k <= d̄_k (and d̄_0 >= floor_0).
+    Without this a pipe can take its neighbour's limbs (widths differ by a few centimetres only). When no
+    assignment satisfies the floors, every gap keeps the model's value (the shift nearest 0).
     """
     n, S = table.shape
     value = gaps[:, None] + shifts[None, :]  # candidate cumulative gaps (n, S)
