@@ -33,6 +33,8 @@ from companion.vision.rack.tracker_config import RackEstimate, RackTrackerConfig
 from companion.vision.rack.tracker_maps import TrackerMaps
 from companion.vision.rack.tracker_solve import TrackerSolve
 
+RESCAN_MIN_CHANGE_M = 0.01  # a second first-frame scan that moves no gap by more than this changes nothing
+
 __all__ = ["RackEstimate", "RackTracker", "RackTrackerConfig"]
 
 
@@ -168,17 +170,18 @@ class RackTracker(TrackerSolve, TrackerMaps):
         ground = self._track_ground(gray, T, ground_in, ground_out)
         # ---- iterations (first frame: try the four limb-polarity hypotheses, keep the best)
         if first:
-            n_p = self.model.num_parallel
-            best: dict[str, Any] | None = None
-            for hyp in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):
-                pol_h = np.zeros(self._polarity.size)
-                pol_h[0 : 2 * n_p : 2] = hyp[0]
-                pol_h[1 : 2 * n_p : 2] = hyp[1]
-                res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h, None)
-                if best is None or res["n_agree"] > best["n_agree"]:
-                    best = res
-            assert best is not None
-            last = best
+            last = self._solve_first(T, gaps, img_raw, img_f, tex_uv)
+            if self._gaps_scanned:
+                # The scan ran at the start pose, whose error (1 cm / 0.5 deg) moves the outer pipes' limbs by
+                # centimetres; from the pose the pipes it placed give, a second scan finds a pipe the first
+                # one missed. Its solve is kept only if at least as many edge samples agree
+                # (`bench/rack_gap_scan.py`, docs/rack.md "Sixteenth session on #14").
+                rescan = scan_gaps(last["T"], cam, self._pipe_arrays(last["gaps"]), last["gaps"], img_raw,
+                                   cfg.init_search_range_gaps_m).gaps
+                if float(np.max(np.abs(rescan - last["gaps"]))) > RESCAN_MIN_CHANGE_M:
+                    again = self._solve_first(last["T"], rescan, img_raw, img_f, tex_uv)
+                    if again["n_agree"] >= last["n_agree"]:
+                        last = again
         else:
             pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
             last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)

@@ -58,6 +58,28 @@ class TrackerSolve(TrackerState):
         self._weights_cache[key] = (prior, anchor_info)
         return prior, anchor_info
 
+    def _solve_first(
+        self,
+        T: FloatArray,
+        gaps: FloatArray,
+        img_raw: np.ndarray[Any, np.dtype[np.float32]],
+        img_f: np.ndarray[Any, np.dtype[np.float32]],
+        tex_uv: FloatArray,
+    ) -> dict[str, Any]:
+        """A first frame's solve from pose T and cumulative gaps: the four limb-polarity hypotheses (each
+        side of every pipe brighter or darker than what is beside it), the one with most agreeing edges."""
+        n_p = self.model.num_parallel
+        best: dict[str, Any] | None = None
+        for hyp in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):
+            pol_h = np.zeros(self._polarity.size)
+            pol_h[0 : 2 * n_p : 2] = hyp[0]
+            pol_h[1 : 2 * n_p : 2] = hyp[1]
+            res = self._solve(T, gaps, img_raw, img_f, tex_uv, True, pol_h, None)
+            if best is None or res["n_agree"] > best["n_agree"]:
+                best = res
+        assert best is not None
+        return best
+
     def _solve(
         self,
         T: FloatArray,
