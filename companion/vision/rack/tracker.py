@@ -99,6 +99,11 @@ class RackTracker(TrackerSolve, TrackerMaps):
         """Standard deviation (m) of the last pose's position along the pipes (see `along_pipe.py`)."""
         return float(self._along_std_m)
 
+    def _scan_gaps(self, T: FloatArray, gaps: FloatArray, img_raw: np.ndarray[Any, np.dtype[np.float32]]) -> FloatArray:
+        """The first frame's gap scan (`gap_scan.scan_gaps`) from pose T and cumulative gaps (m): the new gaps."""
+        pipes = self._pipe_arrays(gaps)
+        return scan_gaps(T, self.camera, pipes, gaps, img_raw, self.config.init_search_range_gaps_m).gaps
+
     def track(
         self, image: Any, stamp_s: float, R_prior: Any = None, R_prior_std_rad: float | None = None
     ) -> RackEstimate:
@@ -134,7 +139,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         gaps = self._gaps.copy()
         self._gaps_scanned = False
         if first and cfg.estimate_gaps and cfg.gap_scan and self._frames == 0 and gaps.size:
-            gaps = scan_gaps(T, cam, self._pipe_arrays(gaps), gaps, img_raw, cfg.init_search_range_gaps_m).gaps
+            gaps = self._scan_gaps(T, gaps, img_raw)
             self._gaps_scanned = True
         pipes = self._pipe_arrays(gaps)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
@@ -176,8 +181,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
                 # centimetres; from the pose the pipes it placed give, a second scan finds a pipe the first
                 # one missed. Its solve is kept only if at least as many edge samples agree
                 # (`bench/rack_gap_scan.py`, docs/rack.md "Sixteenth session on #14").
-                rescan = scan_gaps(last["T"], cam, self._pipe_arrays(last["gaps"]), last["gaps"], img_raw,
-                                   cfg.init_search_range_gaps_m).gaps
+                rescan = self._scan_gaps(last["T"], last["gaps"], img_raw)
                 if float(np.max(np.abs(rescan - last["gaps"]))) > RESCAN_MIN_CHANGE_M:
                     again = self._solve_first(last["T"], rescan, img_raw, img_f, tex_uv)
                     if again["n_agree"] >= last["n_agree"]:
