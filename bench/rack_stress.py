@@ -21,6 +21,8 @@ Usage: python bench/rack_stress.py [--seeds tuning|heldback|all] [--quick] [--ce
        [--set name=value ...] (override RackTrackerConfig fields of every row, for trying changes)
        [--plain-allocator] (glibc's default heap thresholds; by default this process keeps freed memory for the
        next frame as the daemon's does, drivers/allocator.py: it changes the frames/s, not the estimates)
+The tracker's compiled kernels (numba, companion/jit.py) are used when available; `COMPANION_JIT=0` in the
+environment runs its numpy code instead (the same estimates, slower). The JSON names the kernel sets used.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 
 from companion.camera import PinholeCamera  # noqa: E402
 from companion.geometry import se3, so3  # noqa: E402
+from companion.jit import compiled_names  # noqa: E402
 from companion.sim import rack_scene_field  # noqa: E402
 from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig, decode_frame  # noqa: E402
 from companion.vision.rack import Pipe, RackModel, RackTracker, RackTrackerConfig  # noqa: E402
@@ -435,8 +438,9 @@ def main() -> None:
     overrides = parse_set(args.set)
     cache = None if args.no_cache else Path(args.cache_dir)
     if args.throughput:
-        print(json.dumps({"benchmark": "rack_stress", "throughput": throughput(overrides, cache),
-                          "allocator": allocator, "elapsed_s": time.perf_counter() - t_start}))
+        tp = throughput(overrides, cache)
+        print(json.dumps({"benchmark": "rack_stress", "throughput": tp, "allocator": allocator,
+                          "compiled_kernels": compiled_names(), "elapsed_s": time.perf_counter() - t_start}))
         return
     out_cells: dict[str, dict[str, Any]] = {}
     for name in wanted:
@@ -466,7 +470,7 @@ def main() -> None:
         "overrides": overrides, "camera": {"width": 720, "height": 480, "f_px": 630.0, "rate_hz": RATE_HZ},
         "noise_std_grey": NOISE_STD, "blur_px": BLUR_PX, "start_offset": {"m": START_OFF_M, "deg": 0.5},
         "cells": out_cells, "summary": summary, "acceptance": acceptance(out_cells, summary), "allocator": allocator,
-        "elapsed_s": time.perf_counter() - t_start,
+        "compiled_kernels": compiled_names(), "elapsed_s": time.perf_counter() - t_start,
     }
     print(json.dumps(out))
 

@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from companion.camera_jit import kernels as jit_kernels
 from companion.checks import FloatArray, as_float_array, check_last_dim
 from companion.errors import CameraError, InputError
 
@@ -177,6 +178,15 @@ class PinholeCamera:
         p = check_last_dim(p_cam, 3, "p_cam")
         single = p.ndim == 1
         p = p.reshape(-1, 3)
+        ks = jit_kernels() if self.dist is None else None
+        if ks is not None:
+            # The same arithmetic in one compiled call (`camera_jit.py`).
+            uv_k, J_k = ks.pinhole(np.ascontiguousarray(p), self.fx, self.fy, self.skew, self.cx, self.cy,
+                                   _MIN_DEPTH_M, with_jacobian)
+            J_out: FloatArray | None = J_k if with_jacobian else None
+            if single:
+                return uv_k[0], (None if J_out is None else J_out[0])
+            return uv_k, J_out
         z = p[:, 2]
         front = z > _MIN_DEPTH_M
         all_front = bool(front.all())  # the usual case: skip the masking (trackers call this per iteration)

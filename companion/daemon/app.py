@@ -51,6 +51,7 @@ from companion.daemon.vision_task import VisionTask
 from companion.daemon.watchdog import SafetyWatchdog
 from companion.daemon.wiring import Wiring
 from companion.errors import CompanionError, ConfigError, InputError, LinkError
+from companion.jit import compile_in_background
 
 __all__ = ["Daemon", "DaemonOptions", "FrameRecord", "run_daemon"]
 
@@ -92,6 +93,9 @@ class Daemon(Wiring, VisionTask, ImuTask, ControlTask, AlongPipeTask, Missions, 
             await self._open_link()
             await self._open_camera()
             self._build_pipeline()
+            # The trackers' compiled kernels (companion/jit.py): compiled or loaded in a thread, numpy meanwhile,
+            # so that the first install's compilation never stalls the vision loop.
+            compile_in_background()
             self._open_page_state()
             await self._open_video()  # video.enabled: overlay stream to the GCS (video_task)
             if self.options.api and cfg.api.enabled:

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from companion.checks import FloatArray
+from companion.vision.rack.rack_jit import EINSUM_LANES_M, kernels
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
 Float32Array = np.ndarray[Any, np.dtype[np.float32]]
@@ -93,9 +94,9 @@ def search_edges(
     M = 0 if inner_ref is None else int(inner_ref.shape[1])
     if M:
         k = np.arange(-R - 1 - M, R + 2, dtype=np.float32)  # M more samples on the inner side
-    nrm = normal.astype(np.float32)
-    base = uv.astype(np.float32)
     if tangent_offset_px > 0:
+        nrm = normal.astype(np.float32)
+        base = uv.astype(np.float32)
         taps = np.array([-tangent_offset_px, 0.0, tangent_offset_px], dtype=np.float32)
         n_taps = taps.size
         tan = np.stack([-nrm[:, 1], nrm[:, 0]], axis=1)
@@ -110,11 +111,28 @@ def search_edges(
     else:
         # One line per sample: base + k n (the same float32 arithmetic as the three-tap form).
         n_taps = 1
-        mx = base[:, 0:1] + k[None, :] * nrm[:, 0:1]
-        my = base[:, 1:2] + k[None, :] * nrm[:, 1:2]
+        ks_maps = kernels()
+        if ks_maps is not None:
+            mx, my = ks_maps.profile_maps(np.ascontiguousarray(uv, dtype=np.float64),
+                                          np.ascontiguousarray(normal, dtype=np.float64), k)
+        else:
+            nrm = normal.astype(np.float32)
+            base = uv.astype(np.float32)
+            mx = base[:, 0:1] + k[None, :] * nrm[:, 0:1]
+            my = base[:, 1:2] + k[None, :] * nrm[:, 1:2]
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if n_taps > 1:
         prof = prof.reshape(n, n_taps, -1).mean(axis=1)
+    ks = kernels() if not forward_difference and R >= 1 and M in (0, EINSUM_LANES_M) else None
+    if ks is not None:
+        # The same arithmetic in one compiled call (`rack_jit.py`).
+        ref32 = np.ascontiguousarray(inner_ref, dtype=np.float32) if M else np.zeros((n, 0), dtype=np.float32)
+        ratio = np.broadcast_to(np.asarray(innermost_ratio, dtype=np.float32), (n,))
+        offset, found, _b, g_b, inner = ks.pick_edges(
+            np.ascontiguousarray(prof, dtype=np.float32), M, R, np.asarray(polarity, dtype=np.float32), prior,
+            np.float32(threshold), ref32, M > 0, np.ascontiguousarray(ratio))
+        return EdgeMeasurements(offset_px=offset, found=found, sign=np.sign(g_b).astype(np.float64),
+                                strength=np.abs(g_b).astype(np.float64), inner=inner if M else np.zeros((n, 0)))
     windows = None
     if M:
         windows = _inner_windows(np.asarray(prof, dtype=np.float32), M, 2 * R + 1)
@@ -319,11 +337,21 @@ def refine_silhouette(
         return np.zeros(0)
     j, Q = _silhouette_bases(int(inner_px), int(outer_px), float(blur_px))
     p = np.round(np.asarray(offset_px, dtype=np.float64))
-    steps = p[:, None] + j[None, :]  # (N, K)
-    mx = (uv[:, 0:1] + steps * normal[:, 0:1]).astype(np.float32)
-    my = (uv[:, 1:2] + steps * normal[:, 1:2]).astype(np.float32)
+    ks = kernels()
+    if ks is not None:
+        mx, my = ks.silhouette_maps(np.ascontiguousarray(uv, dtype=np.float64),
+                                    np.ascontiguousarray(normal, dtype=np.float64), p, j)
+    else:
+        steps = p[:, None] + j[None, :]  # (N, K)
+        mx = (uv[:, 0:1] + steps * normal[:, 0:1]).astype(np.float32)
+        my = (uv[:, 1:2] + steps * normal[:, 1:2]).astype(np.float32)
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
     proj = prof @ Q  # (N, D * 4)
+    if ks is not None:
+        # The rest in one compiled call (`rack_jit.py`), the same arithmetic.
+        return np.asarray(ks.fit_silhouettes(prof, proj, p, _REFINE_DELTAS, _REFINE_STEP_PX,
+                                             np.asarray(offset_px, dtype=np.float64), float(max_rel_rms),
+                                             float(max(j.size - 4, 1))))
     sq = proj * proj
     # Each candidate's |Q_dᵀ P|²: its four columns added left to right (as a sum over a length-4 axis
     # does, bit for bit), as three adds of (N, D) slabs (a reduction over a short axis is slow).

@@ -23,6 +23,7 @@ from companion.vision.rack.corners import strong_corners
 from companion.vision.rack.limbs import LimbLines, clip_lines_to_view, limb_lines
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import pose_jacobian
+from companion.vision.rack.rack_jit import kernels
 
 
 def plane_points(o_rack: FloatArray, d_rack: FloatArray, z_g: float) -> tuple[FloatArray, FloatArray]:
@@ -31,6 +32,12 @@ def plane_points(o_rack: FloatArray, d_rack: FloatArray, z_g: float) -> tuple[Fl
     `o_rack` is one origin (3,) for all rays or one per ray (K, 3). Rays that do not point down towards the
     plane give NaN rows.
     """
+    ks = kernels()
+    if ks is not None and o_rack.ndim in (1, 2):
+        # The same arithmetic per ray, compiled (`rack_jit.py`).
+        X_k, dX_k = ks.plane_points(np.ascontiguousarray(o_rack, dtype=np.float64).reshape(-1, 3),
+                                    np.ascontiguousarray(d_rack, dtype=np.float64), float(z_g))
+        return X_k, dX_k
     dz = d_rack[:, 2]
     ok = dz < -1e-6
     dz_s = np.where(ok, dz, np.nan)

@@ -15,6 +15,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.vision.rack.limbs_jit import kernels as jit_kernels
 from companion.vision.rack.model import PipeArrays
 
 IntArray = np.ndarray[Any, np.dtype[np.intp]]
@@ -91,6 +92,16 @@ def clip_lines_to_view(
     vmax = camera.height - 1.0 - margin_px
     m = margin_px
     fx, fy, sk, cx, cy = camera.fx, camera.fy, camera.skew, camera.cx, camera.cy
+    ks = jit_kernels()
+    if ks is not None:
+        # The same arithmetic per line, compiled (`limbs_jit.py`).
+        s0_k, s1_k = ks.clip_lines(np.ascontiguousarray(A_cam, dtype=np.float64),
+                                   np.ascontiguousarray(D_cam, dtype=np.float64),
+                                   np.ascontiguousarray(s_min, dtype=np.float64),
+                                   np.ascontiguousarray(s_max, dtype=np.float64),
+                                   float(fx), float(fy), float(sk), float(cx), float(cy), float(umax), float(vmax),
+                                   float(m), float(z_near_m))
+        return s0_k, s1_k
     # Constraints a + b s >= 0: the same linear forms of the points A (rows :n) and directions D (rows n:).
     n = A_cam.shape[0]
     P = np.concatenate([A_cam, D_cam])
@@ -181,6 +192,15 @@ def occluded(
     margin_m: Any = 0.0,
 ) -> BoolArray:
     """True where point p (N, 3) on pipe `own_pipe` (N,) is hidden from o by another pipe."""
+    ks = jit_kernels()
+    if ks is not None:
+        # Per sample and pipe, compiled (`limbs_jit.py`: the same test, dot products without fused multiply-adds).
+        n = p_rack.shape[0]
+        margin = np.ascontiguousarray(np.broadcast_to(np.asarray(margin_m, dtype=np.float64), (n,)))
+        return np.asarray(ks.occluded(np.ascontiguousarray(o_rack, dtype=np.float64),
+                                      np.ascontiguousarray(p_rack, dtype=np.float64),
+                                      np.ascontiguousarray(own_pipe, dtype=np.intp), pipes.starts, pipes.directions,
+                                      pipes.radii, pipes.lengths, margin))
     d = p_rack - o_rack[None, :]
     dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
     d = d / np.maximum(dist, 1e-12)[:, None]

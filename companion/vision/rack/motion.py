@@ -18,10 +18,14 @@ import numpy as np
 
 from companion.checks import FloatArray
 from companion.errors import InputError
+from companion.vision.rack.rack_jit import kernels
 
 
 def pose_jacobian(J_uv_pcam: FloatArray, p_cam: FloatArray) -> FloatArray:
     """Image motion fields (N, 2, 6) of the six generators (right perturbation, cam frame)."""
+    ks = kernels()
+    if ks is not None and J_uv_pcam.dtype == np.float64 and p_cam.dtype == np.float64:
+        return np.asarray(ks.pose_jacobian(J_uv_pcam, p_cam))  # the same arithmetic, compiled (`rack_jit.py`)
     x, y, z = p_cam[:, None, 0], p_cam[:, None, 1], p_cam[:, None, 2]
     J0, J1, J2 = J_uv_pcam[:, :, 0], J_uv_pcam[:, :, 1], J_uv_pcam[:, :, 2]
     # J @ [-I, hat(p)] with hat(p) = [[0, -z, y], [z, 0, -x], [-y, x, 0]], column by column.
@@ -40,6 +44,9 @@ def gap_jacobian(J_uv_pcam: FloatArray, R_cam_rack: FloatArray) -> FloatArray:
 
 def median_1d(a: FloatArray) -> float:
     """`np.median` of a non-empty 1-D float array (the same value, NaN if any) with one partition."""
+    ks = kernels()
+    if ks is not None and a.dtype == np.float64 and a.ndim == 1:
+        return float(ks.median(a))  # the same value, compiled (`rack_jit.py`)
     n = a.size
     h = n // 2
     p = np.partition(a, (h - 1, h, n - 1) if n % 2 == 0 else (h, n - 1))
