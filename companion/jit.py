@@ -65,7 +65,12 @@ def compile_kernels(name: str, build: Callable[[Callable[[Any], Any]], K], warm_
                 import numba
 
                 def njit(f: Any) -> Any:
-                    return numba.njit(cache=True, nogil=True)(f)
+                    try:
+                        return numba.njit(cache=True, nogil=True)(f)
+                    except RuntimeError as exc:  # numba found no writable cache directory
+                        _log.warning("kernels %r not cached (%s): compiled in every process; set NUMBA_CACHE_DIR "
+                                     "to a writable directory", name, exc)
+                        return numba.njit(nogil=True)(f)
 
                 built = build(njit)
                 warm_up(built)

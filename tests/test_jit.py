@@ -79,3 +79,21 @@ def test_background_compilation_never_makes_a_caller_wait(monkeypatch: pytest.Mo
     thread.join(10.0)
     assert not thread.is_alive()
     assert getter() == "kernels"
+
+
+@needs_numba
+def test_no_writable_cache_still_compiles(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """numba refuses `cache=True` when no cache directory is writable (a read-only install without
+    NUMBA_CACHE_DIR): the kernels are then compiled without a cache, not dropped."""
+    import numba.core.caching
+
+    monkeypatch.setattr(numba.core.caching.CacheImpl, "_locator_classes", [])
+    monkeypatch.setattr(jit, "_compiled", {})
+
+    def twice(x: float) -> float:
+        return 2.0 * x
+
+    with caplog.at_level(logging.WARNING, logger="companion.jit"):
+        ks = jit.compile_kernels("test.uncached", lambda njit: njit(twice), lambda k: None)
+    assert ks is not None and ks(1.5) == 3.0
+    assert "not cached" in caplog.text
