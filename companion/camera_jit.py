@@ -2,7 +2,7 @@
 
 The trackers project a few hundred points a dozen times per frame; the numpy code's time there is its
 per-call overhead. `_pinhole` is the same element-wise arithmetic as `PinholeCamera._project` without a
-distortion model, in the same order, so both give the same bits (`tests/test_camera_jit.py`).
+distortion model, in the same order, so both give the same bits (`tests/test_jit.py`).
 """
 
 from __future__ import annotations

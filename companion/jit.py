@@ -64,12 +64,16 @@ def compile_kernels(name: str, build: Callable[[Callable[[Any], Any]], K], warm_
             try:
                 import numba
 
+                warned: list[bool] = []
+
                 def njit(f: Any) -> Any:
                     try:
                         return numba.njit(cache=True, nogil=True)(f)
                     except RuntimeError as exc:  # numba found no writable cache directory
-                        _log.warning("kernels %r not cached (%s): compiled in every process; set NUMBA_CACHE_DIR "
-                                     "to a writable directory", name, exc)
+                        if not warned:
+                            warned.append(True)
+                            _log.warning("kernels %r not cached (%s): compiled in every process; set "
+                                         "NUMBA_CACHE_DIR to a writable directory", name, exc)
                         return numba.njit(nogil=True)(f)
 
                 built = build(njit)

@@ -4,7 +4,7 @@
 `clip_lines` is `limbs.clip_lines_to_view` element by element (the same bits). `occluded` is
 `limbs.occluded` with its dot products summed left to right where numpy's matrix product may use fused
 multiply-adds: distances can differ in the last bit, and the answer only where a sample lies within that of
-another pipe's silhouette (`tests/rack/test_limbs_jit.py` compares both).
+another pipe's silhouette (`tests/rack/test_rack_jit.py` compares both).
 """
 
 from __future__ import annotations
