@@ -16,7 +16,7 @@ from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
 from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig, limbs_jit, rack_jit
 from companion.vision.rack.edges import refine_silhouette, search_edges
 from companion.vision.rack.ground import plane_points
-from companion.vision.rack.limbs import clip_lines_to_view, limb_lines, occluded
+from companion.vision.rack.limbs import clip_lines_to_view, limb_lines, occluded, sample_limbs
 from companion.vision.rack.motion import median_1d, pose_jacobian
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
@@ -100,10 +100,10 @@ def test_pose_jacobian_median_and_ground_point_kernels_match_numpy(monkeypatch: 
         assert 50 < np.isnan(X[:, 0]).sum() < 150
 
 
-def test_limb_clipping_and_occlusion_kernels_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_limb_clipping_occlusion_and_sampling_kernels_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
     rng = np.random.default_rng(5)
     pipes = MODEL.pipe_arrays()
-    n_hidden = 0
+    n_hidden = n_samples = 0
     for _ in range(20):
         # from beside the rack and low (neighbours hide each other) to high above it
         T = se3.make(so3.exp(rng.normal(0.0, 0.3, 3)) @ R_DOWN, [rng.uniform(-3.0, 3.5), rng.uniform(2, 8),
@@ -126,7 +126,13 @@ def test_limb_clipping_and_occlusion_kernels_match_numpy(monkeypatch: pytest.Mon
         a, b = _both(monkeypatch, occluded, o, p_rack, k, pipes, margin)
         np.testing.assert_array_equal(a, b)
         n_hidden += int(a.sum())
+        # and the whole sampling (lines to samples, with numpy's fused multiply-adds in p_rack, and the normals)
+        sa, sb = _both(monkeypatch, sample_limbs, T, CAM, pipes, 16, 6.0, 12.0, 0.1, 3.0)
+        for name in ("p_rack", "p_cam", "uv", "normal_px", "J_uv_pcam", "pipe", "limb", "segments_uv", "segment_limb"):
+            np.testing.assert_array_equal(getattr(sa, name), getattr(sb, name), err_msg=name)
+        n_samples += sa.uv.shape[0]
     assert 100 < n_hidden < 20 * 400 - 100, n_hidden  # both answers exercised
+    assert n_samples > 500, n_samples
 
 
 def test_kernels_can_be_switched_off(monkeypatch: pytest.MonkeyPatch) -> None:

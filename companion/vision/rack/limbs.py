@@ -271,10 +271,60 @@ def sample_limbs(
     A_cam = (lines.point - o) @ R_rc  # R_cam_rack (p - o)
     D_cam = lines.direction @ R_rc
     s0, s1 = clip_lines_to_view(A_cam, D_cam, lines.s_min, lines.s_max, camera, margin_px, z_near_m)
-    keep = lines.valid & (s1 > s0)
+    K = int(samples_per_limb)
+    ks = jit_kernels() if K >= 2 else None  # (numpy's product of a single row rounds differently)
+    if ks is not None:
+        # Lines to samples in one compiled call, the same arithmetic (`limbs_jit.py`).
+        t, one_minus_t = _image_uniform(K)
+        idx, seg, p_cam, p_rack, limb, margin_m = ks.limb_points(
+            A_cam, D_cam, s0, s1, lines.valid, t[0], one_minus_t[0], float(camera.fx), float(camera.fy),
+            float(camera.skew), float(camera.cx), float(camera.cy), float(min_length_px), R_cr, o,
+            float(occlusion_margin_px))
+        if idx.size == 0:
+            return _empty_samples()
+        pipe = limb // 2
+    else:
+        idx, seg, p_cam, p_rack, limb, pipe, margin_m = _lines_to_samples(
+            A_cam, D_cam, s0, s1, lines.valid, camera, K, min_length_px, R_cr, o, occlusion_margin_px)
+        if idx.size == 0:
+            return _empty_samples()
+    vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
+    uv, J = camera.project_with_jacobian(p_cam)
+    lo = -0.5 + margin_px
+    with np.errstate(invalid="ignore"):
+        vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
+            uv[:, 1] <= camera.height - 0.5 - margin_px)
+    if not vis.all():
+        ii = np.flatnonzero(vis)
+        p_cam, p_rack, uv, J, limb, pipe = p_cam[ii], p_rack[ii], uv[ii], J[ii], limb[ii], pipe[ii]
+    # Image tangent (direction of the pipe axis) and outward normal through the Jacobian.
+    if ks is not None:
+        n_img = ks.limb_normals(J, D_cam, np.ascontiguousarray(lines.outward @ R_rc), limb)
+    else:
+        t_img = np.einsum("nij,nj->ni", J, D_cam[limb])
+        m_img = np.einsum("nij,nj->ni", J, (lines.outward @ R_rc)[limb])
+        t_img /= np.maximum(np.sqrt(t_img[:, 0:1] * t_img[:, 0:1] + t_img[:, 1:2] * t_img[:, 1:2]), 1e-12)
+        n_img = np.empty_like(t_img)
+        n_img[:, 0] = -t_img[:, 1]
+        n_img[:, 1] = t_img[:, 0]
+        flip = n_img[:, 0] * m_img[:, 0] + n_img[:, 1] * m_img[:, 1] < 0.0
+        np.negative(n_img, out=n_img, where=flip[:, None])
+    return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
+                       segments_uv=seg, segment_limb=idx)
+
+
+def _lines_to_samples(
+    A_cam: FloatArray, D_cam: FloatArray, s0: FloatArray, s1: FloatArray, valid: BoolArray, camera: PinholeCamera,
+    K: int, min_length_px: float, R_cr: FloatArray, o: FloatArray, occlusion_margin_px: float,
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray, FloatArray]:
+    """`sample_limbs` from the clipped lines to the samples in numpy (see `limbs_jit._limb_points`): kept line
+    indices, their end pixels, p_cam, p_rack, limb, pipe and occlusion margin (m) of every sample."""
+    empty = (np.zeros(0, dtype=np.intp), np.zeros((0, 2, 2)), np.zeros((0, 3)), np.zeros((0, 3)),
+             np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp), np.zeros(0))
+    keep = valid & (s1 > s0)
     idx = np.flatnonzero(keep)
     if idx.size == 0:
-        return _empty_samples()
+        return empty
     # Both clipped ends of each line at once (L, 2, 3): row 0 at s0, row 1 at s1.
     s01 = np.empty((idx.size, 2))
     s01[:, 0] = s0[idx]
@@ -287,11 +337,10 @@ def sample_limbs(
     if not long_enough.all():
         idx, P, U = idx[long_enough], P[long_enough], U[long_enough]
     if idx.size == 0:
-        return _empty_samples()
+        return empty
     seg = np.empty((idx.size, 2, 2))
     seg[:, :, 0] = U[:, :, 0] * camera.fx + U[:, :, 1] * camera.skew + camera.cx
     seg[:, :, 1] = U[:, :, 1] * camera.fy + camera.cy
-    K = int(samples_per_limb)
     t, one_minus_t = _image_uniform(K)
     Za, Zb = P[:, 0, 2:3], P[:, 1, 2:3]
     tZa = t * Za
@@ -303,26 +352,7 @@ def sample_limbs(
     p_rack = p_cam @ R_cr + o
     # Occlusion by other pipes, with a margin of a few pixels at the sample's depth.
     margin_m = occlusion_margin_px * p_cam[:, 2] / camera.fx
-    vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
-    uv, J = camera.project_with_jacobian(p_cam)
-    lo = -0.5 + margin_px
-    with np.errstate(invalid="ignore"):
-        vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
-            uv[:, 1] <= camera.height - 0.5 - margin_px)
-    if not vis.all():
-        ii = np.flatnonzero(vis)
-        p_cam, p_rack, uv, J, limb, pipe = p_cam[ii], p_rack[ii], uv[ii], J[ii], limb[ii], pipe[ii]
-    # Image tangent (direction of the pipe axis) and outward normal through the Jacobian.
-    t_img = np.einsum("nij,nj->ni", J, D_cam[limb])
-    m_img = np.einsum("nij,nj->ni", J, (lines.outward @ R_rc)[limb])
-    t_img /= np.maximum(np.sqrt(t_img[:, 0:1] * t_img[:, 0:1] + t_img[:, 1:2] * t_img[:, 1:2]), 1e-12)
-    n_img = np.empty_like(t_img)
-    n_img[:, 0] = -t_img[:, 1]
-    n_img[:, 1] = t_img[:, 0]
-    flip = n_img[:, 0] * m_img[:, 0] + n_img[:, 1] * m_img[:, 1] < 0.0
-    np.negative(n_img, out=n_img, where=flip[:, None])
-    return LimbSamples(p_rack=p_rack, p_cam=p_cam, uv=uv, normal_px=n_img, J_uv_pcam=J, pipe=pipe, limb=limb,
-                       segments_uv=seg, segment_limb=idx)
+    return idx, seg, p_cam, p_rack, limb, pipe, margin_m
 
 
 def _empty_samples() -> LimbSamples:
