@@ -17,7 +17,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.vision.rack.limbs import LimbSamples, clip_lines_to_view, occluded, sample_limbs
+from companion.vision.rack.limbs import LimbSamples, clip_lines_to_view, inside_margin, occluded, sample_limbs
 from companion.vision.rack.model import PipeArrays
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
@@ -86,10 +86,7 @@ def sample_limbs_many(
         p_rack[a:b] = p_cam[a:b] @ T[:3, :3].T + o
         vis[a:b] = ~occluded(o, p_rack[a:b], pipe[a:b], pipes, margin_m[a:b])
     uv, J = camera.project_with_jacobian(p_cam)
-    lo = -0.5 + margin_px
-    with np.errstate(invalid="ignore"):
-        vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
-            uv[:, 1] <= camera.height - 0.5 - margin_px)
+    vis &= inside_margin(uv, camera, margin_px)
     if not vis.all():
         ii = np.flatnonzero(vis)
         p_cam, p_rack, uv, J, row, pose, limb, pipe = (p_cam[ii], p_rack[ii], uv[ii], J[ii], row[ii], pose[ii],

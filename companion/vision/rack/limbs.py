@@ -248,6 +248,13 @@ def _image_uniform(K: int) -> tuple[FloatArray, FloatArray]:
     return t, one_minus_t
 
 
+def inside_margin(uv: FloatArray, camera: PinholeCamera, margin_px: float) -> BoolArray:
+    """Which pixels uv (N, 2) lie at least `margin_px` inside the image (pixel centres at integers; NaN: no)."""
+    lo = -0.5 + margin_px
+    with np.errstate(invalid="ignore"):
+        return np.asarray((uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px)
+                          & (uv[:, 1] <= camera.height - 0.5 - margin_px))
+
 def sample_limbs(
     T_rack_cam: FloatArray,
     camera: PinholeCamera,
@@ -290,10 +297,7 @@ def sample_limbs(
             return _empty_samples()
     vis = ~occluded(o, p_rack, pipe, pipes, margin_m)
     uv, J = camera.project_with_jacobian(p_cam)
-    lo = -0.5 + margin_px
-    with np.errstate(invalid="ignore"):
-        vis &= (uv[:, 0] >= lo) & (uv[:, 1] >= lo) & (uv[:, 0] <= camera.width - 0.5 - margin_px) & (
-            uv[:, 1] <= camera.height - 0.5 - margin_px)
+    vis &= inside_margin(uv, camera, margin_px)
     if not vis.all():
         ii = np.flatnonzero(vis)
         p_cam, p_rack, uv, J, limb, pipe = p_cam[ii], p_rack[ii], uv[ii], J[ii], limb[ii], pipe[ii]
