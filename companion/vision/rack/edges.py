@@ -94,6 +94,7 @@ def search_edges(
     M = 0 if inner_ref is None else int(inner_ref.shape[1])
     if M:
         k = np.arange(-R - 1 - M, R + 2, dtype=np.float32)  # M more samples on the inner side
+    jit = kernels()
     if tangent_offset_px > 0:
         nrm = normal.astype(np.float32)
         base = uv.astype(np.float32)
@@ -111,9 +112,8 @@ def search_edges(
     else:
         # One line per sample: base + k n (the same float32 arithmetic as the three-tap form).
         n_taps = 1
-        ks_maps = kernels()
-        if ks_maps is not None:
-            mx, my = ks_maps.profile_maps(np.ascontiguousarray(uv, dtype=np.float64),
+        if jit is not None:
+            mx, my = jit.profile_maps(np.ascontiguousarray(uv, dtype=np.float64),
                                           np.ascontiguousarray(normal, dtype=np.float64), k)
         else:
             nrm = normal.astype(np.float32)
@@ -123,7 +123,7 @@ def search_edges(
     prof = cv2.remap(image_f32, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if n_taps > 1:
         prof = prof.reshape(n, n_taps, -1).mean(axis=1)
-    ks = kernels() if not forward_difference and R >= 1 and M in (0, EINSUM_LANES_M) else None
+    ks = jit if not forward_difference and R >= 1 and M in (0, EINSUM_LANES_M) else None
     if ks is not None:
         # The same arithmetic in one compiled call (`rack_jit.py`).
         ref32 = np.ascontiguousarray(inner_ref, dtype=np.float32) if M else np.zeros((n, 0), dtype=np.float32)
