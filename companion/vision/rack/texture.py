@@ -36,13 +36,15 @@ class TextureMap:
     ref_R: FloatArray  # (K, 3, 3) R_rack_cam of the reference image
     ref_o: FloatArray  # (K, 3) camera centre of the reference image, rack frame (m)
     point_id: IntArray  # (K,) unique, increasing over the map's life (for diagnostics)
+    age: IntArray  # (K,) frames each point has been tracked and kept since it was found
     next_id: int = 0
 
     @classmethod
     def empty(cls, patch_size: int = 1) -> TextureMap:
         return cls(pipe=np.zeros(0, dtype=np.intp), offset_rack=np.zeros((0, 3)), uv_last=np.zeros((0, 2)),
                    n_obs=np.zeros(0), ref_patch=np.zeros((0, patch_size, patch_size), dtype=np.float32),
-                   ref_R=np.zeros((0, 3, 3)), ref_o=np.zeros((0, 3)), point_id=np.zeros(0, dtype=np.intp))
+                   ref_R=np.zeros((0, 3, 3)), ref_o=np.zeros((0, 3)), point_id=np.zeros(0, dtype=np.intp),
+                   age=np.zeros(0, dtype=np.intp))
 
     def __len__(self) -> int:
         return int(self.pipe.size)
@@ -59,6 +61,7 @@ class TextureMap:
         self.ref_R = self.ref_R[mask]
         self.ref_o = self.ref_o[mask]
         self.point_id = self.point_id[mask]
+        self.age = self.age[mask]
 
     def add(
         self, pipe: IntArray, offset_rack: FloatArray, uv: FloatArray,
@@ -75,6 +78,7 @@ class TextureMap:
         self.ref_R = np.concatenate([self.ref_R, np.broadcast_to(T_rack_cam[:3, :3], (j, 3, 3))])
         self.ref_o = np.vstack([self.ref_o, np.broadcast_to(T_rack_cam[:3, 3], (j, 3))])
         self.point_id = np.concatenate([self.point_id, np.arange(self.next_id, self.next_id + j, dtype=np.intp)])
+        self.age = np.concatenate([self.age, np.zeros(j, dtype=np.intp)])
         self.next_id += j
 
     def normals_rack(self, pipes: PipeArrays) -> FloatArray:

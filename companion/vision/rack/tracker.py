@@ -29,6 +29,7 @@ from companion.vision.rack.motion import (
     information_condition,
 )
 from companion.vision.rack.texture import TextureMap, track_points
+from companion.vision.rack.texture_check import valley_step_rad
 from companion.vision.rack.tracker_config import RackEstimate, RackTrackerConfig, _positive, _readonly
 from companion.vision.rack.tracker_maps import TrackerMaps
 from companion.vision.rack.tracker_solve import TrackerSolve
@@ -199,7 +200,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         n_agree = int(last["n_agree"])
         residual_px = float(last["residual_px"])
         H_data = last["H_data"]
-        n_tex = int(tex_uv.shape[0])
+        n_tex = int(last.get("n_tex_weighted", tex_uv.shape[0]))  # the points whose rows had weight
         if n_tex >= 3:
             cond = information_condition(H_data[:6, :6])
         else:
@@ -246,6 +247,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
         gap_std = np.sqrt(np.maximum(np.diag(cov_carry)[6 : 6 + n_gap], 0.0)) if n_gap else np.zeros(self._n_gaps)
         # ---- state update
         dt_s = None if self._last_stamp is None else float(stamp_s) - self._last_stamp
+        if ok and not first and cfg.texture_check_deg > 0.0 and cfg.max_texture_points > 0:
+            self._check_texture(last, T)
         if ok:
             if dt_s is not None and 0.0 < dt_s <= 0.5:
                 velocity = se3.log_one(se3.inverse(self._T) @ T) / dt_s
@@ -321,6 +324,18 @@ class RackTracker(TrackerSolve, TrackerMaps):
             condition=float(cond),
             edge_bias_px=_readonly(self._edge_bias),
         )
+
+    def _check_texture(self, last: dict[str, Any], T: FloatArray) -> None:
+        """Fold this accepted frame into the texture check (`texture_check.py`); drop the texture points when
+        it mutes them (they are the ones that carried the pose off; new ones are found and tracked without
+        weight meanwhile)."""
+        n_edge, n_et = int(last["n_edge"]), int(last["n_et"])
+        n_ground = 0 if last.get("ground_uv") is None else 2 * int(last["ground_uv"].shape[0])
+        rows = np.r_[0:n_edge, n_et : n_et + n_ground]
+        step = valley_step_rad(last["A"], last["w"], last["r_post"], rows, T[:3, :3])
+        if self._texture_check.update(step, self._frames, float(np.radians(self.config.texture_check_deg))):
+            self._texture.keep(np.zeros(len(self._texture), dtype=bool))
+            self._stale_ref = np.zeros(0, dtype=bool)
 
     def _fuse_gravity(self, R_prior: FloatArray, std_rad: float, T_pred: FloatArray) -> tuple[FloatArray, float]:
         """Filtered attitude prior for this frame as (R whose last row is the up direction, row weight).

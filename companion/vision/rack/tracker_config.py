@@ -102,6 +102,11 @@ class RackTrackerConfig:
     back into the map and grows; stress bench 2026-11-26),
     `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
     `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
+    `texture_check_deg` (0 = off): when the rotation about the axis across the pipes that the edges and
+    ground points alone ask for, averaged over frames, exceeds this, the texture is muted and its points
+    are dropped for a while, then new points wait a few frames before they count (`texture_check.py`: a
+    point at the wrong depth, a corner of an unmodelled beam, otherwise decides the along-pipe / pitch
+    valley alone);
     `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
     patch (from the image it was found in), warped into the current view through the pipe's
     tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
@@ -188,6 +193,7 @@ class RackTrackerConfig:
     along_pipe_unobserved_speed_m_s: float = 0.5
     along_pipe_points_drift: float = 0.2
     texture_min_corner_ratio: float = 10.0
+    texture_check_deg: float = 0.3
     texture_templates: bool = True
     template_half_px: int = 5
     template_iterations: int = 2
@@ -223,6 +229,8 @@ class RackTrackerConfig:
             raise InputError(f"ground_height_floor_m: must be >= 0, got {self.ground_height_floor_m}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
+        if not (np.isfinite(self.texture_check_deg) and self.texture_check_deg >= 0.0):
+            raise InputError(f"texture_check_deg: must be >= 0 (0 = off), got {self.texture_check_deg}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
         if not -1.0 <= self.template_min_ncc <= 1.0:

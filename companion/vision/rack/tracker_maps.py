@@ -304,6 +304,7 @@ class TrackerMaps(TrackerState):
             res = np.linalg.norm(tex_uv - uv, axis=1)
             keep = res <= cfg.texture_max_residual_px
             tm.uv_last = tex_uv
+            tm.age += 1
             tm.keep(keep)
             if cfg.texture_refine_obs > 1:
                 tm.refine(T, self.camera, pipes, tm.uv_last, float(cfg.texture_refine_obs))

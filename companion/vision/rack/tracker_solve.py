@@ -127,6 +127,9 @@ class TrackerSolve(TrackerState):
             # them (stress bench, docs/rack.md). Only while three points have earned it: after a lost
             # stretch (all points new) holding them all back let the along-pipe position drift.
             ground_trust = np.repeat(np.minimum(1.0, (ground[3] + 1.0) / cfg.ground_trust_frames), 2)
+        # Per texture row: 0 while the texture is muted, or for a new point on probation (`texture_check.py`).
+        tex_factor = np.repeat(self._texture_check.point_weights(self._texture.age, self._frames), 2) \
+            if tex_uv.shape[0] else np.zeros(0)
         pipes = self._pipe_arrays(gaps)
         # Texture points in the rack frame: fixed during the iterations unless the gaps move them.
         tex_rack = self._texture.points_rack(pipes) if tex_uv.shape[0] else np.zeros((0, 3))
@@ -217,7 +220,7 @@ class TrackerSolve(TrackerState):
             w[:n_w] = robust_weights(r[:n_w], kind, cfg.nu_px, gate)
             if cfg.edge_strength_weight > 0.0 and n_edge:
                 w[:n_edge] *= strength_weights(meas.strength[f], cfg.edge_strength_weight)
-            w[n_edge:n_et] *= cfg.texture_weight
+            w[n_edge:n_et] *= cfg.texture_weight * tex_factor
             w[n_et:n_w] *= cfg.ground_weight
             if ground_trust is not None:
                 w[n_et:n_w] *= ground_trust
@@ -248,7 +251,8 @@ class TrackerSolve(TrackerState):
                     "H_data": H_data, "n_edge": n_edge, "n_et": n_et,
                     "z_g": (self._z_g + moved[i_z]) if has_ground else self._z_g, "i_z": i_z if has_ground else -1,
                     "ground_uv": ground[2] if has_ground and ground is not None else None,
-                    "ground_age": ground[3] if has_ground and ground is not None else None}
+                    "ground_age": ground[3] if has_ground and ground is not None else None,
+                    "n_tex_weighted": int(np.count_nonzero(tex_factor)) // 2}
             # |x[:3]| and |x[3:6]| as np.linalg.norm computes them (sqrt of the dot product).
             x_v, x_w = x[:3], x[3:6]
             small = bool(math.sqrt(x_v.dot(x_v)) < cfg.stop_translation_m

@@ -14,6 +14,7 @@ from companion.vision.rack.along_pipe import along_pipe_std, edge_information_al
 from companion.vision.rack.limbs import LimbLines, limb_lines
 from companion.vision.rack.model import PipeArrays, RackModel
 from companion.vision.rack.texture import TextureMap
+from companion.vision.rack.texture_check import TextureCheck
 from companion.vision.rack.tracker_config import RackTrackerConfig
 
 
@@ -79,6 +80,8 @@ class TrackerState:
         # estimated attitude (see `_fuse_gravity`), and its variance (rad^2).
         self._up_rack: FloatArray | None = None
         self._up_var = 0.0
+        # The texture against the edges and ground in the along-pipe / pitch valley (`texture_check.py`).
+        self._texture_check = TextureCheck()
         self._reset_ground()
 
     def _pipe_arrays(self, gaps: FloatArray) -> PipeArrays:
