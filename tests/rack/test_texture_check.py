@@ -45,6 +45,8 @@ def test_the_check_mutes_after_a_persistent_disagreement_and_holds_then_releases
         assert not check.update(np.radians(0.5) * (-1) ** frame, frame, thr)
     assert not check.muted and check.probation_frames(100) == 0
     check = TextureCheck()
+    check.update(float("nan"), 0, thr)  # left out, or the average would stay NaN and never fire
+    assert check.mean_rad == 0.0
     fired = [check.update(np.radians(0.5), frame, thr) for frame in range(40)]
     # The average of a constant 0.5 deg step crosses 0.3 deg after n frames with 1 - (1 - 1/N)^n > 0.6.
     n = int(np.ceil(np.log(0.4) / np.log(1.0 - 1.0 / AVERAGE_FRAMES)))
@@ -101,5 +103,12 @@ def test_the_tracker_drops_and_mutes_its_texture_when_the_check_fires() -> None:
     assert released >= MUTE_FRAMES - 1
     assert all(c == 0 for c in counts[1:released])  # new points tracked, but without weight
     assert max(counts[released:]) >= 3  # texture counts again after the mute
+    # A reset starts the check afresh (its frame count restarts): a mute does not outlive it.
+    on._texture_check.mean_rad = np.radians(1.0)
+    on.track(images[-1], len(images) / 25.0)
+    assert on._texture_check.muted
+    on.reset(frames[-1])
+    assert not on._texture_check.muted and on._texture_check.mute_start is None
+    assert on._texture_check.mean_rad == 0.0
     with pytest.raises(InputError, match="texture_check_deg"):
         RackTrackerConfig(texture_check_deg=-1.0)

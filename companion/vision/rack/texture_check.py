@@ -73,8 +73,12 @@ class TextureCheck:
     mute_start: int | None = None  # frame the last mute began
 
     def update(self, step_rad: float, frame: int, threshold_rad: float) -> bool:
-        """Fold in one accepted frame's step (rad). Returns True when the texture becomes muted on this frame."""
-        self.mean_rad += (step_rad - self.mean_rad) / AVERAGE_FRAMES
+        """Fold in one accepted frame's step (rad). Returns True when the texture becomes muted on this frame.
+
+        A step that is not finite is left out: once in the average it would switch the check off for good.
+        """
+        if np.isfinite(step_rad):
+            self.mean_rad += (step_rad - self.mean_rad) / AVERAGE_FRAMES
         size = abs(self.mean_rad)
         if self.muted:
             held = self.mute_start is not None and frame - self.mute_start < MUTE_FRAMES

@@ -29,7 +29,7 @@ from companion.vision.rack.motion import (
     information_condition,
 )
 from companion.vision.rack.texture import TextureMap, track_points
-from companion.vision.rack.texture_check import valley_step_rad
+from companion.vision.rack.texture_check import TextureCheck, valley_step_rad
 from companion.vision.rack.tracker_config import RackEstimate, RackTrackerConfig, _positive, _readonly
 from companion.vision.rack.tracker_maps import TrackerMaps
 from companion.vision.rack.tracker_solve import TrackerSolve
@@ -74,6 +74,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._scale2 = 0.5
         self._scale2_measured = False
         self._up_rack = None
+        self._texture_check = TextureCheck()  # its frame indices restart with `_frames`
         self._reset_ground()
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
