@@ -57,8 +57,9 @@ def valley_step_rad(
     `w` (N,) their final weights, `r` (N,) the residuals at the final pose (px), `rows` the indices of the
     rows to use (the edges and the ground points), `R_rack_cam` the final attitude.
     """
-    Aw = A[rows] * w[rows, None]
-    H = Aw.T @ A[rows] + _RIDGE * np.eye(A.shape[1])
+    A_s = A[rows]
+    Aw = A_s * w[rows, None]
+    H = Aw.T @ A_s + _RIDGE * np.eye(A.shape[1])
     x = np.linalg.solve(H, Aw.T @ r[rows])
     return float(R_rack_cam[0, :] @ x[3:6])
 
