@@ -358,7 +358,7 @@ OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tang
                "texture_refine_obs": 20,
                # added since (2026-11-26 night and 2026-11-27): off, so that "old" stays the old tracker
                "edge_distance_sigma_px": 0.0, "edge_innermost_ratio": 0.0, "edge_strength_weight": 0.0,
-               "texture_check_deg": 0.0}
+               "texture_check_deg": 0.0, "texture_weight_crossing": None}
 
 
 def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:
@@ -398,7 +398,7 @@ def parse_set(items: list[str]) -> dict[str, Any]:
         if key not in fields:
             raise SystemExit(f"--set: unknown RackTrackerConfig field {key!r}")
         default = getattr(RackTrackerConfig(), key)
-        if default is None:  # an optional number (e.g. ground_height_m): "none" keeps it unset
+        if default is None or "None" in str(fields[key].type):  # an optional number: "none" unsets it
             out[key] = None if val.lower() == "none" else float(val)
         else:
             out[key] = (val.lower() in ("1", "true", "yes")) if isinstance(default, bool) else type(default)(val)

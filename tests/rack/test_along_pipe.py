@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
 from companion.camera import PinholeCamera
 from companion.data import data_path
+from companion.errors import InputError
 from companion.geometry import se3
 from companion.sim.rack_scene import RackScene
-from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
-from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, widen_along
+from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig, tracker_solve
+from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, edges_see_along, widen_along
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -82,3 +84,52 @@ def test_reported_along_pipe_std_grows_without_texture_and_not_over_a_crossing_p
     assert est.ok
     assert abs(float(est.T_rack_cam[1, 3] - T[1, 3])) < 0.01
     assert _along_std(np.asarray(est.covariance), np.asarray(est.T_rack_cam)) < 0.02
+
+
+def test_edges_see_along_the_pipes_only_with_rows_along_them() -> None:
+    R = se3.make(R_DOWN, [0.0, 0.0, 2.0])[:3, :3]
+    limbs = np.array([[1.0, 0.0, 0.3], [-0.5, 0.0, 0.1]])  # parallel limbs: rack x (camera x), no rack y part
+    w = np.ones(2)
+    assert not edges_see_along(limbs, w, R)
+    crossing = np.array([[0.0, -0.5, 0.2]])  # a crossing pipe's limb: camera y is rack -y under R_DOWN
+    assert edges_see_along(np.vstack([limbs, crossing]), np.ones(3), R)
+    assert not edges_see_along(np.vstack([limbs, crossing]), np.array([1.0, 1.0, 0.01]), R)  # 1 % of across
+    assert not edges_see_along(np.zeros((0, 3)), np.zeros(0), R)
+
+
+def test_texture_weight_crossing_applies_over_a_crossing_pipe_with_fixed_gaps_only(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Over the paper rack's crossing pipe the texture rows take `texture_weight_crossing`; set to
+    `texture_weight` it changes nothing, to another value it changes the poses; over parallel pipes only, or
+    with the gaps estimated, it is not used."""
+    seen: list[bool] = []
+    real = tracker_solve.edges_see_along
+
+    def spy(A: np.ndarray, w: np.ndarray, R: np.ndarray) -> bool:
+        seen.append(real(A, w, R))
+        return seen[-1]
+
+    monkeypatch.setattr(tracker_solve, "edges_see_along", spy)
+
+    def poses(y0: float, y1: float, **kw: Any) -> np.ndarray:
+        _tr, out = _run(PAPER, y0, y1, 8, RackTrackerConfig(ground_points=0, **kw))
+        assert all(est.ok for _T, est in out)
+        return np.array([est.T_rack_cam for _T, est in out])
+
+    off = poses(5.9, 6.1, texture_weight_crossing=None)
+    assert not seen  # None: not even asked
+    same = poses(5.9, 6.1, texture_weight_crossing=RackTrackerConfig().texture_weight)
+    assert any(seen)
+    np.testing.assert_array_equal(same, off)
+    assert not np.array_equal(poses(5.9, 6.1, texture_weight_crossing=1.0), off)
+    seen.clear()
+    away = poses(3.0, 3.2, texture_weight_crossing=1.0)  # the crossing pipe out of view
+    assert seen and not any(seen)
+    np.testing.assert_array_equal(away, poses(3.0, 3.2, texture_weight_crossing=None))
+    seen.clear()
+    gaps = poses(5.9, 6.1, texture_weight_crossing=1.0, estimate_gaps=True)
+    assert not seen
+    np.testing.assert_array_equal(gaps, poses(5.9, 6.1, texture_weight_crossing=None, estimate_gaps=True))
+    with pytest.raises(InputError, match="texture_weight_crossing"):
+        RackTrackerConfig(texture_weight_crossing=-1.0)

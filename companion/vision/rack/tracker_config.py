@@ -95,6 +95,12 @@ class RackTrackerConfig:
     but decays from its last value with this time constant. `prior_rate_noise_rad`: the
     per-frame random walk between the vision's attitude and the filtered attitude prior.
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
+    `texture_weight_crossing` (None = `texture_weight` everywhere) their weight instead on frames whose edges
+    observe the position along the pipes (a crossing pipe or a pipe's end in view, `along_pipe.edges_see_along`)
+    when the gaps are held: the edges then hold the along-pipe / pitch valley themselves, and the texture
+    points, placed from the pose of the frame they were found in, only add that pose's error (the stress
+    bench's §V rack, 2026-11-28); not while gaps are estimated (the limbs' places are then uncertain, and the
+    texture holds roll meanwhile: the wrong-gap cell got worse),
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
     a point's 3-D position is averaged over (1 = keep the position from the first sighting: averaging
@@ -183,6 +189,7 @@ class RackTrackerConfig:
     unobserved_velocity_tau_s: float = 0.3
     max_texture_points: int = 50
     texture_weight: float = 4.0
+    texture_weight_crossing: float | None = 2.0
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
@@ -229,6 +236,9 @@ class RackTrackerConfig:
             raise InputError(f"ground_height_floor_m: must be >= 0, got {self.ground_height_floor_m}")
         if self.ground_trust_frames < 1:
             raise InputError(f"ground_trust_frames: must be >= 1, got {self.ground_trust_frames}")
+        if self.texture_weight_crossing is not None and not (
+                np.isfinite(self.texture_weight_crossing) and self.texture_weight_crossing >= 0.0):
+            raise InputError(f"texture_weight_crossing: must be >= 0 or None, got {self.texture_weight_crossing}")
         if not (np.isfinite(self.texture_check_deg) and self.texture_check_deg >= 0.0):
             raise InputError(f"texture_check_deg: must be >= 0 (0 = off), got {self.texture_check_deg}")
         if self.max_texture_points < 0:

@@ -10,6 +10,7 @@ import numpy as np
 
 from companion.checks import FloatArray
 from companion.geometry import se3
+from companion.vision.rack.along_pipe import edges_see_along
 from companion.vision.rack.edges import refine_silhouette, search_edges
 from companion.vision.rack.ground import (
     ground_rows,
@@ -220,7 +221,11 @@ class TrackerSolve(TrackerState):
             w[:n_w] = robust_weights(r[:n_w], kind, cfg.nu_px, gate)
             if cfg.edge_strength_weight > 0.0 and n_edge:
                 w[:n_edge] *= strength_weights(meas.strength[f], cfg.edge_strength_weight)
-            w[n_edge:n_et] *= cfg.texture_weight * tex_factor
+            texture_weight = cfg.texture_weight
+            if cfg.texture_weight_crossing is not None and not cfg.estimate_gaps and n_edge \
+                    and edges_see_along(A[:n_edge, :3], w[:n_edge], T[:3, :3]):
+                texture_weight = cfg.texture_weight_crossing  # the edges hold the valley (config docstring)
+            w[n_edge:n_et] *= texture_weight * tex_factor
             w[n_et:n_w] *= cfg.ground_weight
             if ground_trust is not None:
                 w[n_et:n_w] *= ground_trust
