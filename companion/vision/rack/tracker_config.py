@@ -95,12 +95,12 @@ class RackTrackerConfig:
     but decays from its last value with this time constant. `prior_rate_noise_rad`: the
     per-frame random walk between the vision's attitude and the filtered attitude prior.
     Texture: `max_texture_points` (0 disables), `texture_weight` relative to edge rows,
-    `texture_weight_crossing` (None = `texture_weight` everywhere) their weight instead on frames whose edges
-    observe the position along the pipes (a crossing pipe or a pipe's end in view, `along_pipe.edges_see_along`)
-    when the gaps are held: the edges then hold the along-pipe / pitch valley themselves, and the texture
-    points, placed from the pose of the frame they were found in, only add that pose's error (the stress
-    bench's §V rack, 2026-11-28); not while gaps are estimated (the limbs' places are then uncertain, and the
-    texture holds roll meanwhile: the wrong-gap cell got worse),
+    `texture_weight_crossing` (None = `texture_weight` everywhere) their weight instead in solve iterations whose
+    edge rows observe the position along the pipes (a crossing pipe or a pipe's end in view,
+    `along_pipe.edges_see_along`) when the gaps are held: the edges then hold the along-pipe / pitch valley
+    themselves, and the texture points, placed from the pose of the frame they were found in, only add that pose's
+    error (the stress bench's §V rack, 2026-11-28); not while gaps are estimated (the limbs' places are then
+    uncertain, and the texture holds roll meanwhile: the wrong-gap cell got worse),
     `detect_every` frames between detections, `lk_window_px`, `lk_levels`,
     `texture_max_residual_px` drop threshold, `texture_refine_obs` the number of observations
     a point's 3-D position is averaged over (1 = keep the position from the first sighting: averaging
