@@ -222,7 +222,7 @@ class TrackerSolve(TrackerState):
             if cfg.edge_strength_weight > 0.0 and n_edge:
                 w[:n_edge] *= strength_weights(meas.strength[f], cfg.edge_strength_weight)
             texture_weight = cfg.texture_weight
-            if cfg.texture_weight_crossing is not None and not cfg.estimate_gaps and n_edge \
+            if cfg.texture_weight_crossing is not None and not cfg.estimate_gaps and n_edge and n_et > n_edge \
                     and edges_see_along(A[:n_edge, :3], w[:n_edge], T[:3, :3]):
                 texture_weight = cfg.texture_weight_crossing  # the edges hold the valley (config docstring)
             w[n_edge:n_et] *= texture_weight * tex_factor
