@@ -287,6 +287,8 @@ class RackTracker(TrackerSolve, TrackerMaps):
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
             self._update_ground(gray, T, last, cov_full)
+            if not first:
+                self._T = self._feed_edge_pitch(last, T, pipes)  # the limbs' own pitch, slowly (edge_pitch.py)
         else:
             self._T = T_pred
             self._velocity = np.zeros(6)

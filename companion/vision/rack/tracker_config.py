@@ -112,7 +112,10 @@ class RackTrackerConfig:
     ground points alone ask for, averaged over frames, exceeds this, the texture is muted and its points
     are dropped for a while, then new points wait a few frames before they count (`texture_check.py`: a
     point at the wrong depth, a corner of an unmodelled beam, otherwise decides the along-pipe / pitch
-    valley alone);
+    valley alone); `edge_pitch_gain` (0 = off): after each accepted vision-only frame with held gaps and no
+    crossing pipe in view, that fraction of the pitch step the edges alone ask for is applied to the pose and
+    to the texture and ground points placed from earlier poses (`edge_pitch.py`: those points otherwise keep
+    the pitch error of the poses they were placed from, the start's for hundreds of frames);
     `texture_templates` refines every Lucas-Kanade result by aligning the point's reference
     patch (from the image it was found in), warped into the current view through the pipe's
     tangent plane, with a (2 `template_half_px` + 1)^2 window and `template_iterations`
@@ -190,6 +193,7 @@ class RackTrackerConfig:
     max_texture_points: int = 50
     texture_weight: float = 4.0
     texture_weight_crossing: float | None = 2.0
+    edge_pitch_gain: float = 0.01
     detect_every: int = 4
     lk_window_px: int = 11
     lk_levels: int = 2
@@ -239,6 +243,8 @@ class RackTrackerConfig:
         if self.texture_weight_crossing is not None and not (
                 np.isfinite(self.texture_weight_crossing) and self.texture_weight_crossing >= 0.0):
             raise InputError(f"texture_weight_crossing: must be >= 0 or None, got {self.texture_weight_crossing}")
+        if not (np.isfinite(self.edge_pitch_gain) and 0.0 <= self.edge_pitch_gain <= 1.0):
+            raise InputError(f"edge_pitch_gain: must be in [0, 1] (0 = off), got {self.edge_pitch_gain}")
         if not (np.isfinite(self.texture_check_deg) and self.texture_check_deg >= 0.0):
             raise InputError(f"texture_check_deg: must be >= 0 (0 = off), got {self.texture_check_deg}")
         if self.max_texture_points < 0:

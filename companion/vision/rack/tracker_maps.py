@@ -8,6 +8,13 @@ import cv2
 import numpy as np
 
 from companion.checks import FloatArray
+from companion.vision.rack.along_pipe import edges_see_along
+from companion.vision.rack.edge_pitch import (
+    edge_pitch_step_rad,
+    rotate_about_centre,
+    rotate_on_pipes,
+    rotation_about_rack_x,
+)
 from companion.vision.rack.ground import (
     detect_ground_points,
     ground_mask,
@@ -32,6 +39,38 @@ from companion.vision.rack.tracker_state import TrackerState
 
 class TrackerMaps(TrackerState):
     """Per-limb learning, the ground reference and the texture map, updated on accepted frames."""
+
+    def _feed_edge_pitch(self, last: dict[str, Any], T: FloatArray, pipes: PipeArrays) -> FloatArray:
+        """The accepted pose `T` after `edge_pitch_gain` of the edges' own pitch step (`edge_pitch.py`), with the
+        texture points, their references and the ground rays and anchors rotated with it about the camera centre.
+
+        Only on a vision-only frame (no attitude prior: the filtered gravity holds pitch absolutely, and better),
+        with the gaps held (estimated gaps bias the limbs' pitch), and when the edges do not see along the pipes
+        (with a crossing pipe in view the frame's own solve weighs the edges' pitch in full). Otherwise `T`.
+        """
+        cfg = self.config
+        n_edge = int(last["n_edge"])
+        if cfg.edge_pitch_gain <= 0.0 or n_edge == 0 or self._gravity is not None or cfg.estimate_gaps:
+            return T
+        A, w = last["A"], last["w"]
+        if edges_see_along(A[:n_edge, :3], w[:n_edge], T[:3, :3]):
+            return T
+        step = edge_pitch_step_rad(A, w, last["r_post"], n_edge, T[:3, :3])
+        if not np.isfinite(step):
+            return T
+        R = rotation_about_rack_x(cfg.edge_pitch_gain * step)
+        c = T[:3, 3].copy()
+        out = T.copy()
+        out[:3, :3] = R @ T[:3, :3]
+        tm = self._texture
+        if len(tm):
+            tm.offset_rack = rotate_on_pipes(tm.offset_rack, tm.pipe, pipes, c, R)
+            tm.ref_R = np.einsum("ij,njk->nik", R, tm.ref_R)
+            tm.ref_o = rotate_about_centre(tm.ref_o, c, R)
+        self._ground_d = self._ground_d @ R.T  # rays from this camera centre (`_ground_o`)
+        self._anchor_o = rotate_about_centre(self._anchor_o, c, R)
+        self._anchor_d = self._anchor_d @ R.T
+        return out
 
     def _update_polarity(self, samples: LimbSamples, sign: FloatArray, good: Any) -> None:
         g = np.asarray(good, dtype=bool)
