@@ -15,6 +15,7 @@ from companion.geometry import se3
 from companion.sim.rack_scene import RackScene
 from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig, tracker_solve
 from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, edges_see_along, widen_along
+from tests.rack.spies import spy_edges_see_along
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -103,14 +104,7 @@ def test_texture_weight_crossing_applies_over_a_crossing_pipe_with_fixed_gaps_on
     """Over the paper rack's crossing pipe the texture rows take `texture_weight_crossing`; set to
     `texture_weight` it changes nothing, to another value it changes the poses; over parallel pipes only, or
     with the gaps estimated, it is not used."""
-    seen: list[bool] = []
-    real = tracker_solve.edges_see_along
-
-    def spy(A: np.ndarray, w: np.ndarray, R: np.ndarray) -> bool:
-        seen.append(real(A, w, R))
-        return seen[-1]
-
-    monkeypatch.setattr(tracker_solve, "edges_see_along", spy)
+    seen = spy_edges_see_along(monkeypatch, tracker_solve)
 
     def poses(y0: float, y1: float, **kw: Any) -> np.ndarray:
         _tr, out = _run(PAPER, y0, y1, 8, RackTrackerConfig(ground_points=0, **kw))

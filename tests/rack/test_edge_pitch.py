@@ -20,6 +20,7 @@ from companion.vision.rack.edge_pitch import (
     rotation_about_rack_x,
 )
 from companion.vision.rack.texture_check import valley_step_rad
+from tests.rack.spies import spy_edges_see_along
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -124,14 +125,7 @@ def test_not_applied_with_a_prior_estimated_gaps_or_a_crossing_pipe_in_view(
 ) -> None:
     """With the attitude prior, with the gaps estimated, or while the edges see along the paper rack's crossing
     pipe, the gain changes nothing to the bit."""
-    seen: list[bool] = []
-    real = tracker_maps.edges_see_along
-
-    def spy(A: np.ndarray, w: np.ndarray, R: np.ndarray) -> bool:
-        seen.append(real(A, w, R))
-        return seen[-1]
-
-    monkeypatch.setattr(tracker_maps, "edges_see_along", spy)
+    seen = spy_edges_see_along(monkeypatch, tracker_maps)
     if case == "crossing":
         Ts, imgs = _frames(PAPER, 5.9, 6, 0.01)
         kw: dict[str, Any] = {"ground_points": 0}
