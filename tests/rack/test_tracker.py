@@ -105,6 +105,8 @@ def test_input_errors() -> None:
         tr.track(np.zeros((100, 100), np.uint8), 0.0)
     with pytest.raises(InputError, match="uint8"):
         tr.track(np.zeros((480, 720), np.float32), 0.0)
+    with pytest.raises(InputError, match="stamp_s"):
+        tr.track(img, float("nan"))
     with pytest.raises(InputError, match="T_rack_cam"):
         tr.reset(np.zeros((4, 4)))
     with pytest.raises(InputError, match="robust"):
@@ -172,8 +174,10 @@ def test_attitude_prior_pulls_the_tilt_by_its_weight() -> None:
     tr.reset(T)
     with pytest.raises(InputError, match="R_prior"):
         tr.track(frames[0], 0.0, R_prior=T[:3, :3])
-    with pytest.raises(InputError, match="R_prior"):
+    with pytest.raises(InputError, match="R_prior: not a rotation"):
         tr.track(frames[0], 0.0, R_prior=np.eye(3) * 2.0, R_prior_std_rad=0.01)
+    with pytest.raises(InputError, match="R_prior: contains NaN"):
+        tr.track(frames[0], 0.0, R_prior=np.full((3, 3), np.nan), R_prior_std_rad=0.01)
     with pytest.raises(InputError, match="R_prior_std_rad"):
         tr.track(frames[0], 0.0, R_prior=T[:3, :3], R_prior_std_rad=0.0)
 

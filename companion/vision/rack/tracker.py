@@ -119,6 +119,9 @@ class RackTracker(TrackerSolve, TrackerMaps):
         if self._T is None:
             raise TrackingError("RackTracker: call reset(T_rack_cam) before track()")
         gray = self._as_gray(image)
+        if not np.isfinite(stamp_s):
+            # a NaN stamp would turn off the motion prediction for every later frame, silently
+            raise InputError(f"stamp_s: must be a finite time in seconds, got {stamp_s}")
         self._gray_mean = None
         prior = self._check_prior(R_prior, R_prior_std_rad)
         cfg = self.config

@@ -127,9 +127,13 @@ class TrackerState:
         if R_prior is None or std_rad is None:
             raise InputError("R_prior: give both R_prior and R_prior_std_rad, or neither")
         R = np.asarray(R_prior, dtype=np.float64)
-        if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 \
-                or np.linalg.det(R) < 0:
+        if R.shape != (3, 3):
             raise InputError(f"R_prior: expected a 3x3 rotation matrix, got shape {R.shape}")
+        if not np.all(np.isfinite(R)):
+            raise InputError("R_prior: contains NaN or infinite values")
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise InputError(f"R_prior: not a rotation (|R^T R - I| = {np.abs(R.T @ R - np.eye(3)).max():.2g}, "
+                             f"det {np.linalg.det(R):.3g})")
         std = float(std_rad)
         if not np.isfinite(std) or std <= 0.0:
             raise InputError(f"R_prior_std_rad: must be positive, got {std_rad}")
