@@ -81,6 +81,23 @@ def test_track_loss_is_detected_when_the_camera_looks_away(scene: RackScene) -> 
         assert np.all(np.isfinite(est.T_rack_cam))
 
 
+def test_texture_points_behind_the_camera_give_zero_rows_not_nan() -> None:
+    # A relock's solve with no limb in reach can carry the pose past texture points; their rows must not
+    # poison the normal equations (the NaN projection raised out of track() in the field loop, 2026-11-28).
+    tr = RackTracker(MODEL, CAM)
+    T = se3.make(R_DOWN, [1.0, 3.0, 2.5])
+    tr.reset(T)
+    p_rack = np.array([[1.0, 3.1, 0.3], [1.2, 2.9, 3.0], [0.9, 3.0, 2.5]])  # below, above, in the camera's plane
+    tex_uv = np.array([[370.0, 250.0], [100.0, 100.0], [200.0, 300.0]])
+    A = np.zeros((6, 6))
+    r = np.zeros(6)
+    tr._texture_rows(T, tr._pipe_arrays(tr._gaps), p_rack, tex_uv, A, r)
+    assert np.all(np.isfinite(A)) and np.all(np.isfinite(r))
+    assert np.all(A[2:] == 0.0) and np.all(r[2:] == 0.0)
+    uv = CAM.project((p_rack[0] - T[:3, 3]) @ T[:3, :3])
+    assert np.allclose(r[:2], tex_uv[0] - uv) and np.abs(A[:2]).max() > 0.0
+
+
 def test_wrong_gaps_converge_when_estimated() -> None:
     true_model = RackModel.parallel(radii=[0.15] * 4, gaps=[0.1] * 3, length=10.0)
     wrong = true_model.with_cumulative_gaps([0.15, 0.35, 0.5])

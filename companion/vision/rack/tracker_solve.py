@@ -306,12 +306,23 @@ class TrackerSolve(TrackerState):
     def _texture_rows(
         self, T: FloatArray, pipes: PipeArrays, p_rack: FloatArray, tex_uv: FloatArray, A: FloatArray, r: FloatArray
     ) -> None:
-        """Rows of the K texture points into `A` (2K, n_par) (zero on entry) and residuals into `r` (2K,)."""
+        """Rows of the K texture points into `A` (2K, n_par) (zero on entry) and residuals into `r` (2K,).
+
+        Points behind the camera get zero rows, as the ground's do: a first frame's solve with no limb in
+        reach (a relock) can carry the pose far enough for that, and their NaN projection would otherwise
+        poison the normal equations (docs/rack.md, "Twenty-first session").
+        """
         k = tex_uv.shape[0]
         if k == 0:
             return
         p_cam = (p_rack - T[:3, 3]) @ T[:3, :3]
+        front = p_cam[:, 2] > 1e-3
+        if not front.all():
+            p_cam = np.where(front[:, None], p_cam, np.array([0.0, 0.0, 1.0]))
         uv, J = self.camera.project_with_jacobian(p_cam)
+        if not front.all():
+            J[~front] = 0.0
+            uv[~front] = tex_uv[~front]
         A[:, :6] = pose_jacobian(J, p_cam).reshape(2 * k, 6)
         if self.config.estimate_gaps and self._n_gaps:
             gi = pipes.gap_index[self._texture.pipe]
