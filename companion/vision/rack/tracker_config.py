@@ -107,7 +107,11 @@ class RackTrackerConfig:
     re-places the points from poses that they themselves hold along the pipes, so a lag there feeds
     back into the map and grows; stress bench 2026-11-26),
     `texture_min_distance_px`, `texture_min_incidence_cos` (no grazing points),
-    `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off);
+    `texture_min_corner_ratio` (corner strength over the pipes' median: no points on noise, 0 = off),
+    `texture_crossing_edge_fraction` (0 = off): no new point next to a straight edge across its pipe that steps
+    the grey level over at least this fraction of the pipe's width (`crossing_edges.py`: an unmodelled
+    occluder's outline, whose corners slide along the pipe; marks on the cladding are smaller than the pipe is
+    wide), except near the pipe's ends and modelled crossing pipes (`texture._on_crossing_edges`);
     `texture_check_deg` (0 = off): when the rotation about the axis across the pipes that the edges and
     ground points alone ask for, averaged over frames, exceeds this, the texture is muted and its points
     are dropped for a while, then new points wait a few frames before they count (`texture_check.py`: a
@@ -204,6 +208,7 @@ class RackTrackerConfig:
     along_pipe_unobserved_speed_m_s: float = 0.5
     along_pipe_points_drift: float = 0.2
     texture_min_corner_ratio: float = 10.0
+    texture_crossing_edge_fraction: float = 0.5
     texture_check_deg: float = 0.3
     texture_templates: bool = True
     template_half_px: int = 5
@@ -247,6 +252,9 @@ class RackTrackerConfig:
             raise InputError(f"edge_pitch_gain: must be in [0, 1] (0 = off), got {self.edge_pitch_gain}")
         if not (np.isfinite(self.texture_check_deg) and self.texture_check_deg >= 0.0):
             raise InputError(f"texture_check_deg: must be >= 0 (0 = off), got {self.texture_check_deg}")
+        if not (np.isfinite(self.texture_crossing_edge_fraction) and 0.0 <= self.texture_crossing_edge_fraction <= 1.0):
+            raise InputError(f"texture_crossing_edge_fraction: must be in [0, 1] (0 = off), got "
+                             f"{self.texture_crossing_edge_fraction}")
         if self.max_texture_points < 0:
             raise InputError(f"max_texture_points: must be >= 0, got {self.max_texture_points}")
         if not -1.0 <= self.template_min_ncc <= 1.0:

@@ -359,7 +359,7 @@ class TrackerMaps(TrackerState):
         polys = self._pipe_polygons(samples)
         new_pipe, new_off, new_uv = detect_points(
             gray, T, self.camera, pipes, polys, tm.uv_last, need, cfg.texture_min_distance_px,
-            cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio,
+            cfg.texture_min_incidence_cos, cfg.texture_min_corner_ratio, cfg.texture_crossing_edge_fraction,
         )
         self._detect_short = new_pipe.size < need
         if new_pipe.size:
