@@ -111,3 +111,14 @@ def test_corners_at_the_image_border_do_not_raise_and_noise_alone_is_no_edge() -
     k = uv.shape[0]
     got = on_crossing_edge(noise, uv, np.tile([0.0, 1.0], (k, 1)), np.zeros(k), np.full(k, WIDTH_PX), 0.5)
     assert not np.any(got)
+
+
+def test_non_finite_or_huge_geometry_is_not_judged_and_does_not_raise() -> None:
+    rng = np.random.default_rng(9)
+    img, axis, _normal, centre = _scene(0.0, 0.0, True, [], rng)
+    uv = np.tile(centre - 4.0 * axis, (4, 1))
+    axes = np.tile(axis, (4, 1))
+    axes[1] = np.nan
+    widths = np.array([WIDTH_PX, WIDTH_PX, np.inf, 1e9])
+    got = on_crossing_edge(img, uv, axes, np.zeros(4), widths, 0.5)
+    assert got.shape == (4,) and bool(got[0]) and not got[1] and not got[2]

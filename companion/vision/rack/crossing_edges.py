@@ -62,6 +62,18 @@ def on_crossing_edge(
     k = uv.shape[0]
     if k == 0 or min_fraction <= 0.0:
         return np.zeros(k, dtype=bool)
+    # A pose far off (a relock's wide solve) can put a pipe behind or around the camera: such corners are not
+    # judged, and no pipe is taken wider than twice the image (the window's columns grow with it).
+    finite = np.isfinite(uv).all(axis=1) & np.isfinite(axis_px).all(axis=1) & np.isfinite(offset_px) \
+        & np.isfinite(width_px)
+    if not np.all(finite):
+        out = np.zeros(k, dtype=bool)
+        if np.any(finite):
+            out[finite] = on_crossing_edge(gray, uv[finite], axis_px[finite], offset_px[finite], width_px[finite],
+                                           min_fraction)
+        return out
+    width_px = np.minimum(width_px, 2.0 * float(max(gray.shape[:2])))
+    offset_px = np.clip(offset_px, -width_px, width_px)
     ax = axis_px / np.maximum(np.linalg.norm(axis_px, axis=1, keepdims=True), 1e-12)
     normal = np.stack([-ax[:, 1], ax[:, 0]], axis=1)
     x_lo = -(0.5 * width_px + offset_px) + LIMB_MARGIN_PX  # the -normal limb, from the corner
