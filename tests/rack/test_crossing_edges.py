@@ -122,3 +122,12 @@ def test_non_finite_or_huge_geometry_is_not_judged_and_does_not_raise() -> None:
     widths = np.array([WIDTH_PX, WIDTH_PX, np.inf, 1e9])
     got = on_crossing_edge(img, uv, axes, np.zeros(4), widths, 0.5)
     assert got.shape == (4,) and bool(got[0]) and not got[1] and not got[2]
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan"), float("inf")])
+def test_the_config_refuses_a_fraction_outside_zero_to_one(bad: float) -> None:
+    from companion.errors import InputError
+    from companion.vision.rack import RackTrackerConfig
+
+    with pytest.raises(InputError, match="texture_crossing_edge_fraction"):
+        RackTrackerConfig(texture_crossing_edge_fraction=bad)
