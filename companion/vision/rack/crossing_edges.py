@@ -20,7 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-FloatArray = np.ndarray[Any, np.dtype[np.float64]]
+from companion.checks import FloatArray
+
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
 
 STEP_HALF_PX = 3.0  # the grey-level step is taken between points this far either side, along the pipe's axis

@@ -210,18 +210,20 @@ def detect_points(
     good = hit & (cosang >= min_incidence_cos)
     if crossing_edge_fraction > 0.0 and np.any(good):
         g = np.flatnonzero(good)
-        good[g[_on_crossing_edges(gray, T_rack_cam, camera, pipes, best[g], p[g], d[g], uv[g],
-                                  crossing_edge_fraction)]] = False
+        good[g[_on_crossing_edges(gray, T_rack_cam, camera, pipes, best[g], pipes.starts[best[g]], ax[g], d[g],
+                                  uv[g], crossing_edge_fraction)]] = False
     idx = np.flatnonzero(good)[:max_new]
     return best[idx].astype(np.intp), rel[idx], uv[idx]
 
 
 def _on_crossing_edges(
     gray: np.ndarray[Any, np.dtype[np.uint8]], T_rack_cam: FloatArray, camera: PinholeCamera, pipes: PipeArrays,
-    pipe: IntArray, p_rack: FloatArray, d_rack: FloatArray, uv: FloatArray, min_fraction: float,
+    pipe: IntArray, start_rack: FloatArray, s_axial: FloatArray, d_rack: FloatArray, uv: FloatArray,
+    min_fraction: float,
 ) -> np.ndarray[Any, np.dtype[np.bool_]]:
-    """`crossing_edges.on_crossing_edge` for corners (J) at `p_rack` (J, 3) on pipes `pipe` (J,), seen along
-    the rays `d_rack` (J, 3): the pipe's image axis, centre line and width there from the model at the pose.
+    """`crossing_edges.on_crossing_edge` for corners (J) on pipes `pipe` (J,) at `s_axial` (J,) m along them from
+    their axis starts `start_rack` (J, 3), seen along the rays `d_rack` (J, 3): the pipe's image axis, centre
+    line and width there from the model at the pose.
 
     Only where the model explains no edge across the pipe: corners within `MODELLED_MARGIN_M` of their pipe's
     ends or of a modelled pipe crossing it are left to the tracker as before. A pipe's end is a fixed place on
@@ -232,7 +234,6 @@ def _on_crossing_edges(
     25 cm, seed 2's track (20-30 cm off from frame 250 with or without the test) ran away once the crossing
     pipe's junctions fell outside it (72 cm RMS against 20.65).
     """
-    s_axial = np.einsum("ni,ni->n", p_rack - pipes.starts[pipe], pipes.directions[pipe])
     near_end = (s_axial < MODELLED_MARGIN_M) | (s_axial > pipes.lengths[pipe] - MODELLED_MARGIN_M)
     hits = ray_cylinder_hits(T_rack_cam[:3, 3], d_rack, pipes, MODELLED_MARGIN_M)  # (J, M)
     crossing = np.abs(pipes.directions @ pipes.directions.T) < 0.9  # (M, M): pipes not parallel to each other
@@ -241,11 +242,11 @@ def _on_crossing_edges(
     judge = np.flatnonzero(~modelled)
     if judge.size == 0:
         return out
-    pipe, p_rack, d_rack, uv = pipe[judge], p_rack[judge], d_rack[judge], uv[judge]
+    pipe, d_rack, uv = pipe[judge], d_rack[judge], uv[judge]
     R, o = T_rack_cam[:3, :3], T_rack_cam[:3, 3]
     v = pipes.directions[pipe]
     r = pipes.radii[pipe][:, None]
-    centre = pipes.starts[pipe] + np.einsum("ni,ni->n", p_rack - pipes.starts[pipe], v)[:, None] * v
+    centre = start_rack[judge] + s_axial[judge][:, None] * v
     across = np.cross(v, d_rack)
     across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-12)
     # the axis point abeam the corner, 5 cm further along, and the limbs across the view (one projection)
