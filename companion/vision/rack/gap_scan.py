@@ -88,26 +88,8 @@ def scan_gaps(
         return GapScan(out, score_out)
     e_x_cam = T_rack_cam[:3, :3][0, :]  # the rack's +x in the camera frame
     duv_ds = samples.J_uv_pcam @ e_x_cam  # (N, 2) px per metre of the pipe's shift
-    a = np.sum(duv_ds * samples.normal_px, axis=1)  # along each sample's normal
     shifts = np.arange(-range_m, range_m + 0.5 * step_m, step_m)
-    K = int(np.ceil(np.max(np.abs(a)) * range_m)) + 2
-    k = np.arange(-K - 1, K + 2, dtype=np.float32)
-    nrm = samples.normal_px.astype(np.float32)
-    mx = samples.uv[:, 0:1].astype(np.float32) + k[None, :] * nrm[:, 0:1]
-    my = samples.uv[:, 1:2].astype(np.float32) + k[None, :] * nrm[:, 1:2]
-    smooth = np.asarray(cv2.GaussianBlur(image_f32, (0, 0), 1.5), dtype=np.float32)
-    prof = cv2.remap(smooth, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-    g = prof[:, 2:] - prof[:, :-2]  # (N, 2K+1) at k = -K..K
-    pos = np.clip(a[:, None] * shifts[None, :] + K, 0.0, 2.0 * K - 1e-6)  # fractional index (N, S)
-    i0 = np.floor(pos).astype(np.intp)
-    f = pos - i0
-    rows = np.arange(n)[:, None]
-    gs = (1.0 - f) * g[rows, i0] + f * g[rows, np.minimum(i0 + 1, 2 * K)]
-    # Grey level `inside_px` inside each limb (the pipe's cladding when the shift is right), per shift.
-    posi = np.clip(pos + 1.0 - inside_px, 0.0, 2.0 * K + 2 - 1e-6)
-    j0 = np.floor(posi).astype(np.intp)
-    fj = posi - j0
-    ins = (1.0 - fj) * prof[rows, j0] + fj * prof[rows, np.minimum(j0 + 1, 2 * K + 2)]
+    gs, ins = shifted_profiles(samples.uv, samples.normal_px, duv_ds, image_f32, shifts, range_m, inside_px)
     # Score table (gaps, shifts); gaps whose pipe is not seen well keep a flat zero row.
     table = np.zeros((out.size, shifts.size))
     seen = np.zeros(out.size, dtype=bool)
@@ -129,6 +111,41 @@ def scan_gaps(
         out[g_idx] = out[g_idx] + shifts[pick[g_idx]]
         score_out[g_idx] = table[g_idx, pick[g_idx]]
     return GapScan(out, score_out)
+
+
+def shifted_profiles(
+    uv: FloatArray, normal_px: FloatArray, duv_ds: FloatArray, image_f32: np.ndarray[Any, np.dtype[np.float32]],
+    shifts: FloatArray, range_m: float, inside_px: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Each limb sample's gradient across its limb (N, S) (grey levels per 2 px, signed along its outward
+    normal) and the grey level `inside_px` inside it (N, S), with the sample moved by `shifts` (S,) (m) times its image
+    motion `duv_ds` (N, 2) (px per m; only the part along its normal counts, first order). The samples sit at
+    pixels `uv` (N, 2) with unit outward image normals `normal_px` (N, 2).
+
+    The profile across each sample is read once (blurred by 1.5 px, one `cv2.remap`, wide enough for
+    `range_m`) and interpolated at every shift.
+    """
+    n = uv.shape[0]
+    a = np.sum(duv_ds * normal_px, axis=1)  # along each sample's normal
+    K = int(np.ceil(np.max(np.abs(a)) * range_m)) + 2
+    k = np.arange(-K - 1, K + 2, dtype=np.float32)
+    nrm = normal_px.astype(np.float32)
+    mx = uv[:, 0:1].astype(np.float32) + k[None, :] * nrm[:, 0:1]
+    my = uv[:, 1:2].astype(np.float32) + k[None, :] * nrm[:, 1:2]
+    smooth = np.asarray(cv2.GaussianBlur(image_f32, (0, 0), 1.5), dtype=np.float32)
+    prof = cv2.remap(smooth, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    g = prof[:, 2:] - prof[:, :-2]  # (N, 2K+1) at k = -K..K
+    pos = np.clip(a[:, None] * shifts[None, :] + K, 0.0, 2.0 * K - 1e-6)  # fractional index (N, S)
+    i0 = np.floor(pos).astype(np.intp)
+    f = pos - i0
+    rows = np.arange(n)[:, None]
+    gs = (1.0 - f) * g[rows, i0] + f * g[rows, np.minimum(i0 + 1, 2 * K)]
+    # Grey level `inside_px` inside each limb (the pipe's cladding when the shift is right), per shift.
+    posi = np.clip(pos + 1.0 - inside_px, 0.0, 2.0 * K + 2 - 1e-6)
+    j0 = np.floor(posi).astype(np.intp)
+    fj = posi - j0
+    ins = (1.0 - fj) * prof[rows, j0] + fj * prof[rows, np.minimum(j0 + 1, 2 * K + 2)]
+    return gs, ins
 
 
 def _ordered_best(

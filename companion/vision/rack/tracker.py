@@ -60,6 +60,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
         self._start_std = (_positive(position_std_m, "position_std_m", cfg.reset_prior_translation_m),
                            _positive(rotation_std_rad, "rotation_std_rad", cfg.reset_prior_rotation_rad))
         self._lost_frames = 0
+        self._residual_px = 0.0
         self._relocking = False
         self._along_std_m = self._start_std[0]
         if cumulative_gaps is not None:
@@ -147,6 +148,9 @@ class RackTracker(TrackerSolve, TrackerMaps):
             gaps = self._scan_gaps(T, gaps, img_raw)
             self._gaps_scanned = True
         pipes = self._pipe_arrays(gaps)
+        if not first:
+            # a crossing pipe in view after drifting along the pipes; a refused frame keeps the move too
+            T = T_pred = self._scan_along(T, pipes, img_raw)
         # ---- texture points: LK from the previous image, seeded by the predicted projection
         tex_uv = np.zeros((0, 2))
         tex_ok = np.zeros(0, dtype=bool)
@@ -286,6 +290,7 @@ class RackTracker(TrackerSolve, TrackerMaps):
             self._initialized = True
             self._relocking = False
             self._lost_frames = 0
+            self._residual_px = residual_px
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])

@@ -135,6 +135,11 @@ class RackTrackerConfig:
     drift, but never correct it), and shrinks only with edges that cross the pipes' direction (a crossing
     pipe, a pipe's end) or a `reset`; 0 = the solver's covariance alone (which conditions each frame on
     the previous pose and says ~1 cm after metres without texture).
+    `along_scan_range_m` (0 = off): while that standard deviation is more than half the edge search at the
+    pipes' depth and a crossing pipe shows both its limbs, the camera's position along the pipes is searched
+    up to that far (m) by the crossing pipe's two limbs at once (`along_scan.py`); the prediction is moved to
+    the best place when that lies beyond the edge search, scores at least `along_scan_min_gain` times the
+    unmoved place and twice any other, and the last frame was accepted with a small edge residual.
     """
 
     samples_per_limb: int = 32
@@ -207,6 +212,8 @@ class RackTrackerConfig:
     texture_min_incidence_cos: float = 0.4
     along_pipe_unobserved_speed_m_s: float = 0.5
     along_pipe_points_drift: float = 0.2
+    along_scan_range_m: float = 0.4
+    along_scan_min_gain: float = 1.5
     texture_min_corner_ratio: float = 10.0
     texture_crossing_edge_fraction: float = 0.5
     texture_check_deg: float = 0.3
@@ -252,6 +259,10 @@ class RackTrackerConfig:
             raise InputError(f"edge_pitch_gain: must be in [0, 1] (0 = off), got {self.edge_pitch_gain}")
         if not (np.isfinite(self.texture_check_deg) and self.texture_check_deg >= 0.0):
             raise InputError(f"texture_check_deg: must be >= 0 (0 = off), got {self.texture_check_deg}")
+        if not (np.isfinite(self.along_scan_range_m) and self.along_scan_range_m >= 0.0):
+            raise InputError(f"along_scan_range_m: must be >= 0 (0 = off), got {self.along_scan_range_m}")
+        if not (np.isfinite(self.along_scan_min_gain) and self.along_scan_min_gain >= 1.0):
+            raise InputError(f"along_scan_min_gain: must be >= 1, got {self.along_scan_min_gain}")
         if not (np.isfinite(self.texture_crossing_edge_fraction) and 0.0 <= self.texture_crossing_edge_fraction <= 1.0):
             raise InputError(f"texture_crossing_edge_fraction: must be in [0, 1] (0 = off), got "
                              f"{self.texture_crossing_edge_fraction}")
