@@ -359,7 +359,8 @@ OLD_TRACKER = {"texture_min_corner_ratio": 0.0, "edge_profile_px": 0, "edge_tang
                # added since (2026-11-26 night and 2026-11-27): off, so that "old" stays the old tracker
                "edge_distance_sigma_px": 0.0, "edge_innermost_ratio": 0.0, "edge_strength_weight": 0.0,
                "texture_check_deg": 0.0, "texture_weight_crossing": None, "edge_pitch_gain": 0.0,
-               "texture_crossing_edge_fraction": 0.0, "along_scan_range_m": 0.0}
+               "texture_crossing_edge_fraction": 0.0, "along_scan_range_m": 0.0,
+               "retry_refused": False}
 
 
 def throughput(overrides: dict[str, Any], cache: Path | None) -> dict[str, Any]:

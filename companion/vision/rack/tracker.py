@@ -21,16 +21,14 @@ import numpy as np
 
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
-from companion.geometry import se3, so3
+from companion.geometry import se3
 from companion.vision.rack.gap_scan import scan_gaps
 from companion.vision.rack.limbs import occluded
-from companion.vision.rack.motion import (
-    gated_residual_variance,
-    information_condition,
-)
+from companion.vision.rack.motion import gated_residual_variance
 from companion.vision.rack.texture import TextureMap, track_points
 from companion.vision.rack.texture_check import TextureCheck, valley_step_rad
 from companion.vision.rack.tracker_config import RackEstimate, RackTrackerConfig, _positive, _readonly
+from companion.vision.rack.tracker_health import TrackerHealth
 from companion.vision.rack.tracker_maps import TrackerMaps
 from companion.vision.rack.tracker_solve import TrackerSolve
 
@@ -39,7 +37,7 @@ RESCAN_MIN_CHANGE_M = 0.01  # a second first-frame scan that moves no gap by mor
 __all__ = ["RackEstimate", "RackTracker", "RackTrackerConfig"]
 
 
-class RackTracker(TrackerSolve, TrackerMaps):
+class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
     """Stateful tracker; call `reset(T_rack_cam)` then `track(image, stamp_s)` for each frame.
 
     Split by concern: settings and result in `tracker_config.py`, state in `tracker_state.py`, the
@@ -198,44 +196,23 @@ class RackTracker(TrackerSolve, TrackerMaps):
         else:
             pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
             last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
+        status, n_tex, cond = self._status(last, T_pred, tex_uv.shape[0])
+        if status and not first and cfg.retry_refused:
+            # A shaking camera: solve again from starts that do not extrapolate the last turn (`tracker_health.py`).
+            for T_try in self._retry_starts(T_pred, None if prior is None else prior[0]):
+                again = self._solve(T_try, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
+                retried = self._status(again, T_pred, tex_uv.shape[0])
+                if not retried[0]:
+                    last, (status, n_tex, cond) = again, retried
+                    break
         T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
-        # ---- health
         x = last["x"]
         r_post = last["r_post"]
         w = last["w"]
-        n_samples = int(last["samples"].uv.shape[0])
         agree = last["agree"]
+        n_samples = int(last["samples"].uv.shape[0])
         n_agree = int(last["n_agree"])
         residual_px = float(last["residual_px"])
-        H_data = last["H_data"]
-        n_tex = int(last.get("n_tex_weighted", tex_uv.shape[0]))  # the points whose rows had weight
-        if n_tex >= 3:
-            cond = information_condition(H_data[:6, :6])
-        else:
-            # Along-pipe translation is expected to be weak without texture: check the rest.
-            e_y = np.zeros(6)
-            e_y[:3] = T[:3, :3].T[:, 1]
-            Q = np.linalg.svd(np.eye(6) - np.outer(e_y, e_y))[0][:, :5]
-            cond = information_condition(H_data[:6, :6], Q)
-        status = ""
-        if n_samples == 0:
-            status = "no visible limb"
-        elif n_agree < cfg.min_edge_points:
-            status = f"too few agreeing edge samples ({n_agree})"
-        elif n_agree < cfg.min_inlier_fraction * n_samples:
-            status = f"too few agreeing edge samples ({n_agree}/{n_samples})"
-        elif residual_px > cfg.max_residual_px:
-            status = f"edge residual too large ({residual_px:.2f} px)"
-        elif not cond < cfg.max_condition:
-            status = f"ill-conditioned ({cond:.3g})"
-        elif self._relocking:
-            # The relock's wide search may take another structure (a beam, the deck) far from where the
-            # rack was a few frames ago: a pose beyond the relock prior's reach is not the rack.
-            jump_m = float(np.linalg.norm(T[:3, 3] - T_pred[:3, 3]))
-            jump_rad = float(np.linalg.norm(so3.log(T_pred[:3, :3].T @ T[:3, :3])))
-            n_sigma = cfg.relock_max_jump_sigma
-            if jump_m > n_sigma * self._start_std[0] or jump_rad > n_sigma * self._start_std[1]:
-                status = f"relock {jump_m:.2f} m / {np.degrees(jump_rad):.1f} deg from the last pose"
         ok = status == ""
         # ---- covariance from the final normal matrix and residual scale
         wpos = w > 0

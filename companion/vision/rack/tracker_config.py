@@ -140,6 +140,9 @@ class RackTrackerConfig:
     up to that far (m) by the crossing pipe's two limbs at once (`along_scan.py`); the prediction is moved to
     the best place when that lies beyond the edge search, scores at least `along_scan_min_gain` times the
     unmoved place and twice any other, and the last frame was accepted with a small edge residual.
+    `retry_refused`: a frame the health checks refuse is solved once more from the last pose's attitude
+    and, given an attitude prior, from the prior's tilt (`tracker_health.py`: a shaking camera makes the
+    motion prediction's attitude wrong by twice the last turn); the first start that passes is kept.
     """
 
     samples_per_limb: int = 32
@@ -213,6 +216,7 @@ class RackTrackerConfig:
     along_pipe_unobserved_speed_m_s: float = 0.5
     along_pipe_points_drift: float = 0.2
     along_scan_range_m: float = 0.4
+    retry_refused: bool = True
     along_scan_min_gain: float = 1.5
     texture_min_corner_ratio: float = 10.0
     texture_crossing_edge_fraction: float = 0.5

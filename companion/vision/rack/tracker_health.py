@@ -1,0 +1,94 @@
+"""Whether a rack tracker's solve is accepted, and where to start again when it is not.
+
+A solve starts from the motion prediction: the last pose carried on by the last frame-to-frame
+velocity. A camera that shakes (a multirotor's attitude reverses within a frame or two) makes the
+prediction's attitude wrong by twice the last frame's turn; at 15 frames/s over the sim's field
+frames that was 1.5 deg, 8 px at the pipes, and the solve settled on the pipes' shading and the
+ground's markings next to the limbs (`bench/rack_field_loop.py --library --seed 4`, 2026-11-28: the
+frame was refused with the pose 1.4 cm off; the prediction then stood still while the drone flew
+on, and the pass ended metres off). Refused frames are solved once more from starts that do not
+extrapolate the turn: the last pose's attitude, and the attitude prior's tilt when one is given.
+Frames accepted at the first try are not touched.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from companion.checks import FloatArray
+from companion.geometry import so3
+from companion.vision.rack.motion import information_condition
+from companion.vision.rack.tracker_state import TrackerState
+
+
+class TrackerHealth(TrackerState):
+    """The health checks of a solve (`_status`) and the starts of a second try (`_retry_starts`)."""
+
+    def _status(self, last: dict[str, Any], T_pred: FloatArray, n_tex_found: int) -> tuple[str, int, float]:
+        """("" when the solve `last` is accepted, else the reason; the texture points whose rows had weight; the
+        condition number of the normalised information matrix).
+
+        `T_pred` the prediction (a relock's jump is measured from it), `n_tex_found` the texture points tracked
+        into this frame (the count when the solve does not say how many had weight).
+        """
+        cfg = self.config
+        T = last["T"]
+        n_samples = int(last["samples"].uv.shape[0])
+        n_agree = int(last["n_agree"])
+        residual_px = float(last["residual_px"])
+        H_data = last["H_data"]
+        n_tex = int(last.get("n_tex_weighted", n_tex_found))
+        if n_tex >= 3:
+            cond = information_condition(H_data[:6, :6])
+        else:
+            # Along-pipe translation is expected to be weak without texture: check the rest.
+            e_y = np.zeros(6)
+            e_y[:3] = T[:3, :3].T[:, 1]
+            Q = np.linalg.svd(np.eye(6) - np.outer(e_y, e_y))[0][:, :5]
+            cond = information_condition(H_data[:6, :6], Q)
+        status = ""
+        if n_samples == 0:
+            status = "no visible limb"
+        elif n_agree < cfg.min_edge_points:
+            status = f"too few agreeing edge samples ({n_agree})"
+        elif n_agree < cfg.min_inlier_fraction * n_samples:
+            status = f"too few agreeing edge samples ({n_agree}/{n_samples})"
+        elif residual_px > cfg.max_residual_px:
+            status = f"edge residual too large ({residual_px:.2f} px)"
+        elif not cond < cfg.max_condition:
+            status = f"ill-conditioned ({cond:.3g})"
+        elif self._relocking:
+            # The relock's wide search may take another structure (a beam, the deck) far from where the
+            # rack was a few frames ago: a pose beyond the relock prior's reach is not the rack.
+            jump_m = float(np.linalg.norm(T[:3, 3] - T_pred[:3, 3]))
+            jump_rad = float(np.linalg.norm(so3.log(T_pred[:3, :3].T @ T[:3, :3])))
+            n_sigma = cfg.relock_max_jump_sigma
+            if jump_m > n_sigma * self._start_std[0] or jump_rad > n_sigma * self._start_std[1]:
+                status = f"relock {jump_m:.2f} m / {np.degrees(jump_rad):.1f} deg from the last pose"
+        return status, n_tex, float(cond)
+
+    def _retry_starts(self, T_pred: FloatArray, R_prior: FloatArray | None) -> list[FloatArray]:
+        """Starts for a second solve of a refused frame: the prediction's position with the last pose's attitude
+        (no turn extrapolated), and, given an attitude prior `R_prior` (3x3, its last row the up direction seen
+        by the camera), the prediction tilted onto the prior's up direction (heading kept). Camera poses in the
+        rack frame (4x4)."""
+        if self._T is None:
+            return []
+        starts = []
+        T_a = T_pred.copy()
+        T_a[:3, :3] = self._T[:3, :3]
+        starts.append(T_a)
+        if R_prior is not None:
+            g_pred = T_pred[2, :3]  # the rack's up seen by the camera (R_rack_cam's last row)
+            g_prior = np.asarray(R_prior[2, :], dtype=np.float64)
+            g_prior = g_prior / np.linalg.norm(g_prior)
+            axis = np.cross(g_pred, g_prior)
+            angle = float(np.arctan2(np.linalg.norm(axis), float(g_pred @ g_prior)))
+            if angle > 1e-9:
+                M = so3.exp(axis / np.linalg.norm(axis) * angle)  # takes g_pred onto g_prior (camera frame)
+                T_b = T_pred.copy()
+                T_b[:3, :3] = T_pred[:3, :3] @ M.T
+                starts.append(T_b)
+        return starts
