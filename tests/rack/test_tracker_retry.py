@@ -84,3 +84,16 @@ def test_the_retry_starts_keep_the_position_and_tilt_onto_the_prior() -> None:
     # the smallest rotation that does it: the turn from the prediction equals the angle between the two up directions
     turn = np.linalg.norm(so3.log(T_pred[:3, :3].T @ tilted[:3, :3]))
     assert abs(turn - np.arccos(np.clip(T_pred[2, :3] @ R_prior[2, :], -1.0, 1.0))) < 1e-9
+
+
+def test_a_retry_must_pass_clearly() -> None:
+    """The first try was refused, so the frame is doubtful: a retry at 2.9 px with 45 % of the samples agreeing
+    (it passes the first try's checks) is not taken; one at 0.8 px with 90 % is."""
+
+    class _Samples:
+        uv = np.zeros((200, 2))
+
+    tr = RackTracker(MODEL, CAM, RackTrackerConfig())
+    assert not tr._clear_retry({"samples": _Samples(), "residual_px": 2.9, "n_agree": 90})
+    assert not tr._clear_retry({"samples": _Samples(), "residual_px": 0.8, "n_agree": 120})
+    assert tr._clear_retry({"samples": _Samples(), "residual_px": 0.8, "n_agree": 180})

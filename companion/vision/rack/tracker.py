@@ -202,7 +202,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             for T_try in self._retry_starts(T_pred, None if prior is None else prior[0]):
                 again = self._solve(T_try, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
                 retried = self._status(again, T_pred, tex_uv.shape[0])
-                if not retried[0]:
+                if not retried[0] and self._clear_retry(again):
                     last, (status, n_tex, cond) = again, retried
                     break
         T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
