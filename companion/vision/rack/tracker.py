@@ -41,7 +41,8 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
     """Stateful tracker; call `reset(T_rack_cam)` then `track(image, stamp_s)` for each frame.
 
     Split by concern: settings and result in `tracker_config.py`, state in `tracker_state.py`, the
-    per-frame solve in `tracker_solve.py`, the maps carried between frames in `tracker_maps.py`.
+    per-frame solve in `tracker_solve.py`, the maps carried between frames in `tracker_maps.py`, the
+    health checks and the second try of a refused frame in `tracker_health.py`.
     """
 
     def reset(
