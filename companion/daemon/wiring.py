@@ -42,7 +42,6 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "texture_crossing_edge_fraction": 0.0,  # library default 0.5 since 2026-11-28 midday (stress bench only)
     # library default 0.4 since 2026-11-28 (sim frames); it reads the along-pipe std, which the daemon keeps off
     "along_scan_range_m": 0.0,
-    "retry_refused": False,  # library default since 2026-11-28 (sim frames); not flown yet
     "texture_refine_obs": 20,
     # the filter treats each rack pose as an absolute fix and cannot carry the along-pipe position on the
     # IMU for seconds (companion sim, field appearance, 2026-11-26: 0.7-1.9 m off within 10 s), so the

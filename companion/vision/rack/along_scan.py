@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.vision.rack.gap_scan import shifted_profiles
+from companion.vision.rack.gap_scan import pipe_score, shifted_profiles
 from companion.vision.rack.limbs import sample_limbs
 from companion.vision.rack.model import PipeArrays
 
@@ -88,13 +88,10 @@ def scan_along(
     total = np.zeros(shifts.size)
     seen = False
     for m in crossing.tolist():
-        left = limb == 2 * m
-        right = limb == 2 * m + 1
-        if left.sum() < 4 or right.sum() < 4:
+        score = pipe_score(gs, ins, limb, m, inside_scale)
+        if score is None:
             continue
-        mag_l = np.abs(gs[left]).mean(axis=0) / (1.0 + ins[left].std(axis=0) / inside_scale)
-        mag_r = np.abs(gs[right]).mean(axis=0) / (1.0 + ins[right].std(axis=0) / inside_scale)
-        total += np.minimum(mag_l, mag_r)
+        total += score
         seen = True
     if not seen:
         return none

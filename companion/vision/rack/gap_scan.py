@@ -97,13 +97,10 @@ def scan_gaps(
         gi = int(pipes.gap_index[m])
         if gi < 0:
             continue
-        left = samples.limb == 2 * m
-        right = samples.limb == 2 * m + 1
-        if left.sum() < 4 or right.sum() < 4:
+        score = pipe_score(gs, ins, samples.limb, m, inside_scale)
+        if score is None:
             continue
-        mag_l = np.abs(gs[left]).mean(axis=0) / (1.0 + ins[left].std(axis=0) / inside_scale)
-        mag_r = np.abs(gs[right]).mean(axis=0) / (1.0 + ins[right].std(axis=0) / inside_scale)
-        table[gi] = np.minimum(mag_l, mag_r)
+        table[gi] = score
         seen[gi] = True
     table[table < min_score] = 0.0
     pick = _ordered_best(out, shifts, table - 1e-6 * np.abs(shifts)[None, :], min_gap_m)  # ties: the model's gap
@@ -111,6 +108,21 @@ def scan_gaps(
         out[g_idx] = out[g_idx] + shifts[pick[g_idx]]
         score_out[g_idx] = table[g_idx, pick[g_idx]]
     return GapScan(out, score_out)
+
+
+def pipe_score(
+    gs: FloatArray, ins: FloatArray, limb: np.ndarray[Any, np.dtype[np.intp]], m: int, inside_scale: float
+) -> FloatArray | None:
+    """Pipe `m`'s score per shift (S,) from its samples' shifted gradients `gs` and inside grey levels `ins`
+    ((N, S), `shifted_profiles`; `limb` (N,) each sample's limb index): min over its two limbs of the mean
+    |gradient| / (1 + std of the inside grey level / `inside_scale`). None when a limb has fewer than 4 samples."""
+    left = limb == 2 * m
+    right = limb == 2 * m + 1
+    if left.sum() < 4 or right.sum() < 4:
+        return None
+    mag_l = np.abs(gs[left]).mean(axis=0) / (1.0 + ins[left].std(axis=0) / inside_scale)
+    mag_r = np.abs(gs[right]).mean(axis=0) / (1.0 + ins[right].std(axis=0) / inside_scale)
+    return np.asarray(np.minimum(mag_l, mag_r))
 
 
 def shifted_profiles(
