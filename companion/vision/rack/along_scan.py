@@ -81,6 +81,8 @@ def scan_along(
         return none
     e_y_cam = T_rack_cam[:3, :3][1, :]  # the rack's +y in the camera frame
     duv_ds = -(samples.J_uv_pcam[on] @ e_y_cam)  # (N, 2) px per metre of the camera's move along +y
+    if not np.all(np.isfinite(duv_ds)):  # a far-off pose (a relock's first guess): nothing to score
+        return none
     n_half = int(np.ceil(range_m / step_m))
     shifts = step_m * np.arange(-n_half, n_half + 1, dtype=np.float64)
     gs, ins = shifted_profiles(samples.uv[on], samples.normal_px[on], duv_ds, image_f32, shifts, range_m, inside_px)
