@@ -163,9 +163,7 @@ class TrackerState:
             info = edge_information_along(last["A"][:n_edge, :3], last["w"][:n_edge], e)
             # Edges across the pipes (a crossing pipe, an end) correct the along-pipe position only when
             # it was known to within the edge search: further off they were matched to other structures.
-            depth_m = max(float(self._T[2, 3]), 0.1)  # camera height above the support plane ~ depth
-            std_px = self._along_std_m * self.camera.fx / depth_m
-            if info > 0.0 and std_px <= 0.5 * cfg.search_range_px:
+            if info > 0.0 and self._along_px(self._T, self._along_std_m) <= 0.5 * cfg.search_range_px:
                 edge_var = self._scale2 * cfg.covariance_inflation / info
             n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
             held = n_tex + n_ground >= 3
@@ -173,6 +171,11 @@ class TrackerState:
         self._along_std_m = along_pipe_std(self._along_std_m, dt, moved, held, edge_var,
                                            cfg.along_pipe_unobserved_speed_m_s, cfg.along_pipe_points_drift)
         return widen_along(cov, e, self._along_std_m)
+
+    def _along_px(self, T: FloatArray, along_m: float) -> float:
+        """`along_m` (m) along the pipes seen from pose `T` (px): at the camera's height above the support plane,
+        which stands in for the depth of what crosses the pipes (a crossing pipe lies nearer)."""
+        return along_m * self.camera.fx / max(float(T[2, 3]), 0.1)
 
     def _scan_along(
         self, T: FloatArray, pipes: PipeArrays, img_raw: np.ndarray[Any, np.dtype[np.float32]]
@@ -186,20 +189,19 @@ class TrackerState:
         dropped and found again. The reported along-pipe standard deviation is left as it is.
         """
         cfg = self.config
-        depth_m = max(float(T[2, 3]), 0.1)  # camera height above the support plane ~ depth (as below)
         # Not while frames are refused or barely pass: the pose may then be off in every direction, and a move
         # along the pipes that fits the crossing pipe's limbs from a wrong height or attitude is no better (field
         # loop, seed 9: 82 -> 210 cm RMS with the scan after frames at 2.9 px of edge residual).
         if cfg.along_scan_range_m <= 0.0 or self._T is None or self._lost_frames > 0 \
                 or self._residual_px > 0.5 * cfg.max_residual_px \
-                or self._along_std_m * self.camera.fx / depth_m <= 0.5 * cfg.search_range_px:
+                or self._along_px(T, self._along_std_m) <= 0.5 * cfg.search_range_px:
             return T
         scan = scan_along(T, self.camera, pipes, img_raw, cfg.along_scan_range_m)
         # Within the edge search the solve's own edges take it there, and a move that small may be the attitude's
         # error instead (1 deg of pitch moves the crossing pipe by 3 cm at 1.7 m; field loop, seed 14): a move is
         # made, and the texture dropped, only beyond it (measured at the camera's height, which the crossing pipe
         # lies above: this errs towards leaving a move to the solve).
-        if abs(scan.shift_m) * self.camera.fx / depth_m <= cfg.search_range_px \
+        if self._along_px(T, abs(scan.shift_m)) <= cfg.search_range_px \
                 or scan.at_edge or scan.score < ALONG_SCAN_MIN_SCORE \
                 or scan.score < cfg.along_scan_min_gain * scan.score_at_zero \
                 or scan.runner_up > ALONG_SCAN_MAX_RUNNER_UP * scan.score:
