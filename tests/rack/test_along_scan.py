@@ -118,3 +118,27 @@ def test_no_move_while_frames_are_refused_or_within_the_edge_search() -> None:
     assert moved(-0.2, lost=1) == 0.0  # the last frame was refused: the pose may be off in every direction
     assert moved(-0.2, residual_px=2.0) == 0.0  # it barely passed
     assert moved(-0.02) == 0.0  # 9 px: within the edge search, left to the solve
+
+
+def test_a_velocity_error_is_moved_out_of_the_velocity_not_kept_alive() -> None:
+    """The last pose on the pipe and the velocity 15 cm/frame too fast along the pipes (field loop seed 2: after
+    refused frames). Moving the last pose back with each prediction kept the velocity's error, and the scan moved
+    every later frame too; after a moved frame only the prediction moves, so the velocity takes the move back."""
+    scene = RackScene(PAPER, seed=5)
+    rng = np.random.default_rng(4)
+    ys = np.linspace(5.5, 5.9, 21)  # 2 cm/frame along +y, the crossing pipe (6 m) in view
+    imgs = [scene.render(_pose(y), CAM, noise_std=3.0, rng=rng) for y in ys]
+    tr = RackTracker(PAPER, CAM, RackTrackerConfig())
+    tr.reset(_pose(ys[0]))
+    for k in range(3):
+        assert tr.track(imgs[k], 0.04 * k).ok
+    tr._velocity = tr._velocity.copy()
+    tr._velocity[:3] += tr._T[:3, :3].T @ np.array([0.0, 0.15 / 0.04, 0.0])  # in the camera frame
+    tr._along_std_m = 0.5
+    moved, errs = [], []
+    for k in range(3, len(ys)):
+        est = tr.track(imgs[k], 0.04 * k)
+        moved.append(tr._along_moved)
+        errs.append(abs(float(est.T_rack_cam[1, 3] - ys[k])))
+    assert 1 <= sum(moved) <= 2, moved
+    assert max(errs[4:]) < 0.02, errs

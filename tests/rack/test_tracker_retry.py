@@ -1,13 +1,18 @@
-"""A refused frame solved again from starts that do not extrapolate the last turn (`tracker_health.py`)."""
+"""A refused or marginal frame solved again from starts that do not extrapolate the last turn (`tracker_health.py`)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from companion.camera import PinholeCamera
-from companion.geometry import se3, so3
+from companion.geometry import frames, se3, so3
 from companion.sim.rack_scene import RackScene
+from companion.sim.render import SceneRenderer
+from companion.sim.run import sim_config
 from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+from drivers.camera import load_camera_model
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -56,7 +61,7 @@ def test_the_attitude_prior_starts_a_retry_where_the_last_attitude_is_too_far() 
     assert refused_prior <= refused_prior_no_retry - 4, (refused_prior, refused_prior_no_retry)
 
 
-def test_frames_accepted_at_the_first_try_are_not_touched() -> None:
+def test_frames_accepted_clearly_at_the_first_try_are_not_touched() -> None:
     poses = [se3.make(so3.exp([0.0, 0.002 * k, 0.03]) @ R_DOWN, [0.6, 4.0 + 0.01 * k, 2.0]) for k in range(12)]
     scene = RackScene(MODEL, seed=2)
     rng = np.random.default_rng(3)
@@ -97,3 +102,63 @@ def test_a_retry_must_pass_clearly() -> None:
     assert not tr._clear_retry({"samples": _Samples(), "residual_px": 2.9, "n_agree": 90})
     assert not tr._clear_retry({"samples": _Samples(), "residual_px": 0.8, "n_agree": 120})
     assert tr._clear_retry({"samples": _Samples(), "residual_px": 0.8, "n_agree": 180})
+
+
+def test_a_marginal_solve_is_replaced_only_by_a_clearly_better_retry() -> None:
+    """A first try that passed with 130 of 200 samples agreeing: a clear retry with 150 (the same solve, just over the
+    bar) does not replace it, one with 160 (a fifth more) does; a retry at 2 px never does."""
+
+    class _Samples:
+        uv = np.zeros((200, 2))
+
+    tr = RackTracker(MODEL, CAM, RackTrackerConfig())
+    first = {"samples": _Samples(), "residual_px": 1.6, "n_agree": 130}
+    assert not tr._better_retry({"samples": _Samples(), "residual_px": 0.9, "n_agree": 150}, first)
+    assert tr._better_retry({"samples": _Samples(), "residual_px": 0.9, "n_agree": 160}, first)
+    assert not tr._better_retry({"samples": _Samples(), "residual_px": 2.0, "n_agree": 190}, first)
+
+
+# Fifteen body poses in NED (x, y, z m; roll, pitch, yaw rad) of `bench/rack_field_loop.py --library --seed 24`,
+# frames 362-376: the drone starts its transit to pipe 3 at up to 0.75 m/s, and the sim's wobble turns it by
+# -0.8 deg in roll within two frames (index 11 -> 12).
+FIELD_SEED_24 = np.array([
+    (8.00404, -0.90302, -1.29706, 0.009263, 0.035122, -0.014596),
+    (8.00260, -0.89295, -1.29575, 0.010795, 0.030599, -0.017717),
+    (7.99613, -0.86901, -1.29178, -0.003654, 0.017304, -0.014921),
+    (8.00056, -0.83767, -1.28865, -0.012757, 0.015479, -0.016217),
+    (8.00087, -0.81118, -1.29109, -0.006652, 0.019234, -0.015093),
+    (8.00902, -0.78699, -1.29364, 0.008672, 0.018798, -0.009561),
+    (7.99823, -0.73958, -1.29480, 0.005477, 0.027145, -0.008529),
+    (8.00636, -0.69170, -1.29682, 0.002576, 0.033837, -0.009386),
+    (7.99857, -0.65526, -1.29487, -0.006112, 0.038914, -0.010967),
+    (7.99204, -0.60828, -1.29459, -0.002604, 0.041732, -0.005785),
+    (7.98904, -0.57498, -1.29676, 0.001043, 0.045649, -0.004325),
+    (7.99004, -0.53464, -1.29649, -0.007746, 0.054709, -0.004391),
+    (7.98324, -0.48246, -1.29705, -0.021238, 0.047237, -0.003278),
+    (7.97938, -0.44371, -1.29777, -0.030590, 0.040571, -0.001203),
+    (7.98313, -0.39590, -1.29069, -0.027630, 0.039822, -0.001232),
+])
+
+
+def test_a_marginal_solve_after_a_turn_is_replaced_by_a_clear_retry(tmp_path: Path) -> None:
+    """The sim's field appearance at 15 frames/s: the turn makes the prediction's roll 1.2 deg off, and the solve
+    from it passes the health checks but only just (55-60 % agreeing, 2-3 px), 9-12 cm off; the pose then slid
+    one pipe over within 4 frames in the field loop. Solved again from the last attitude it is within 3 cm."""
+    cfg = sim_config(tmp_path, {})
+    cam = load_camera_model(cfg.camera)
+    render = SceneRenderer.from_config(cfg, cam, seed=24, appearance="field")
+    poses = [se3.make(frames.rotation_from_euler_zyx(r, p, y), [x, yy, z]) for x, yy, z, r, p, y in FIELD_SEED_24]
+    imgs = [render(T) for T in poses]  # the first two only advance the renderer's noise, as the flight before did
+    truth = [render.T_rack_cam(T) for T in poses]
+    worst_cm = {}
+    for marginal in (False, True):
+        tr = RackTracker(RackModel.load(cfg.rack.model), cam, RackTrackerConfig(retry_marginal=marginal))
+        tr.reset(truth[2])
+        errs = []
+        for k in range(2, len(poses)):
+            est = tr.track(imgs[k] if imgs[k].ndim == 2 else imgs[k][..., 0], k / 15.0)
+            assert est.ok
+            errs.append(100.0 * float(np.linalg.norm(est.T_rack_cam[:3, 3] - truth[k][:3, 3])))
+        worst_cm[marginal] = max(errs)
+    assert worst_cm[False] > 6.0, worst_cm
+    assert worst_cm[True] < 3.0, worst_cm

@@ -143,6 +143,10 @@ class RackTrackerConfig:
     `retry_refused`: a frame the health checks refuse is solved once more from the last pose's attitude
     and, given an attitude prior, from the prior's tilt (`tracker_health.py`: a shaking camera makes the
     motion prediction's attitude wrong by twice the last turn); the first start that passes is kept.
+    `retry_marginal`: with `retry_refused`, a frame that passes but not clearly (an edge residual above half
+    `max_residual_px` or fewer than 70 % of its edge samples agreeing) right after a frame that passed clearly is
+    solved from the same starts too; the retry is kept only if it passes clearly with a fifth more edge samples
+    agreeing (`tracker_health.py`).
     """
 
     samples_per_limb: int = 32
@@ -217,6 +221,7 @@ class RackTrackerConfig:
     along_pipe_points_drift: float = 0.2
     along_scan_range_m: float = 0.4
     retry_refused: bool = True
+    retry_marginal: bool = True
     along_scan_min_gain: float = 1.5
     texture_min_corner_ratio: float = 10.0
     texture_crossing_edge_fraction: float = 0.5

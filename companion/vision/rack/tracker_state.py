@@ -65,9 +65,11 @@ class TrackerState:
         self._start_std = (self.config.reset_prior_translation_m, self.config.reset_prior_rotation_rad)
         self._lost_frames = 0
         self._residual_px = 0.0  # the last accepted frame's robust edge residual (px)
+        self._last_clear = False  # the last frame was accepted clearly (`TrackerHealth._clear_retry`)
         self._along_std_m = self._start_std[0]  # std of the position along the pipes (`along_pipe.py`)
         self._relocking = False  # the wide search runs again after lost frames (`relock_after_frames`)
         self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
+        self._along_moved = False  # this frame's prediction was moved by `_scan_along`
         self._since_detect = 0
         self._detect_short = False
         self._pipes_key: bytes | None = None
@@ -186,9 +188,12 @@ class TrackerState:
 
         What was placed from the drifted poses follows: the last pose (so that the velocity does not take the
         move for motion) and the ground points' rays move with it; texture points, placed along their pipes, are
-        dropped and found again. The reported along-pipe standard deviation is left as it is.
+        dropped and found again. The reported along-pipe standard deviation is left as it is. After a frame that
+        was moved itself, the last pose sat on the crossing pipe: the error is the velocity's, and only the
+        prediction moves (the velocity then takes the move back).
         """
         cfg = self.config
+        last_moved, self._along_moved = self._along_moved, False
         # Not while frames are refused or barely pass: the pose may then be off in every direction, and a move
         # along the pipes that fits the crossing pipe's limbs from a wrong height or attitude is no better (field
         # loop, seed 9: 82 -> 210 cm RMS with the scan after frames at 2.9 px of edge residual).
@@ -209,10 +214,14 @@ class TrackerState:
         shift = np.array([0.0, scan.shift_m, 0.0])
         T = T.copy()
         T[:3, 3] += shift
-        self._T = self._T.copy()
-        self._T[:3, 3] += shift
-        self._ground_o = self._ground_o + shift
-        self._anchor_o = self._anchor_o + shift
+        self._along_moved = True
+        if not last_moved:
+            # Moving the last pose on every frame kept a velocity error alive: a prediction 20 cm ahead was moved
+            # back and the last pose 20 cm behind with it, frame after frame (field loop seed 2, 2026-11-28).
+            self._T = self._T.copy()
+            self._T[:3, 3] += shift
+            self._ground_o = self._ground_o + shift
+            self._anchor_o = self._anchor_o + shift
         self._texture.keep(np.zeros(len(self._texture), dtype=bool))
         self._stale_ref = np.zeros(0, dtype=bool)
         return T
