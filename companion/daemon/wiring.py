@@ -42,6 +42,9 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     "texture_crossing_edge_fraction": 0.0,  # library default 0.5 since 2026-11-28 midday (stress bench only)
     # library default 0.4 since 2026-11-28 (sim frames); it reads the along-pipe std, which the daemon keeps off
     "along_scan_range_m": 0.0,
+    # library default since 2026-11-28 midday (sim frames): flown in `companion sim --seed 1|2|3` against the code
+    # without it, every waypoint within 4.04 / 3.47 / 4.65 cm against 3.85 / 3.28 / 4.38, so not taken yet
+    "retry_marginal": False,
     "texture_refine_obs": 20,
     # the filter treats each rack pose as an absolute fix and cannot carry the along-pipe position on the
     # IMU for seconds (companion sim, field appearance, 2026-11-26: 0.7-1.9 m off within 10 s), so the
