@@ -28,7 +28,7 @@ from companion.vision.rack.motion import gated_residual_variance
 from companion.vision.rack.texture import TextureMap, track_points
 from companion.vision.rack.texture_check import TextureCheck, valley_step_rad
 from companion.vision.rack.tracker_config import RackEstimate, RackTrackerConfig, _positive, _readonly
-from companion.vision.rack.tracker_health import TrackerHealth
+from companion.vision.rack.tracker_health import JUMP_SIGMA, TrackerHealth
 from companion.vision.rack.tracker_maps import TrackerMaps
 from companion.vision.rack.tracker_solve import TrackerSolve
 
@@ -200,7 +200,9 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
             last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
         status, n_tex, cond = self._status(last, T_pred, tex_uv.shape[0])
-        marginal = not status and cfg.retry_marginal and self._last_clear and not self._clear_retry(last)
+        after_clear = not status and cfg.retry_marginal and self._last_clear
+        jumped = after_clear and self._jump_sigma(last["T"], T_pred) > JUMP_SIGMA
+        marginal = after_clear and (jumped or not self._clear_retry(last))
         if not first and cfg.retry_refused and (status or marginal):
             # A shaking camera: solve again from starts that do not extrapolate the last turn (`tracker_health.py`).
             # A solve that passes only marginally right after a clear frame may have settled beside the limbs as
@@ -211,7 +213,8 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             for T_try in self._retry_starts(T_pred, None if prior is None else prior[0]):
                 again = self._solve(T_try, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
                 retried = self._status(again, T_pred, tex_uv.shape[0])
-                if not retried[0] and (self._better_retry(again, first_try) if marginal else self._clear_retry(again)):
+                if not retried[0] and (self._better_retry(again, first_try, T_pred, jumped) if marginal
+                                       else self._clear_retry(again)):
                     last, (status, n_tex, cond) = again, retried
                     break
         T, gaps, pipes, it_done = last["T"], last["gaps"], last["pipes"], last["iterations"]
