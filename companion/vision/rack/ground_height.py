@@ -10,6 +10,13 @@ against where it is seen now, fixes the height. Only the component of the residu
 motion *across* the pipes makes is used: across the pipes the limbs measure the translation in metres,
 while along them the tracker's own translation came from the ground's flow scaled by the very height being
 estimated.
+
+The two poses' *relative* attitude error is the other thing the residual carries: a roll between them moves
+every ground point sideways, as the height's error does, and few parallel pipes hardly tell a roll from a
+sideways slide. A roll's flow is not a translation's, though (over a camera's field of view it grows towards
+the image's sides as 1 + u²/f², while a translation's over a level ground is the same everywhere), so the fit
+estimates the current camera's small rotation beside the height and reads the height only from what no
+rotation explains (docs/rack.md, "Twenty-fifth session on #14").
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
+from companion.geometry import so3
 from companion.vision.rack.ground import plane_points
 from companion.vision.rack.motion import median_1d
 
@@ -35,6 +43,11 @@ _ITERATIONS = 4
 _TUKEY_C = 4.685
 _MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
 _MIN_POINTS = 8
+# The fit's rotation (rad) is the two poses' relative attitude error, a fraction of a degree: the ridge (px² per
+# rad², tiny beside a point's ~600² px² per rad²) only keeps H invertible with few points, the step bound keeps
+# one bad iteration from turning the camera.
+_ROTATION_RIDGE = 1.0
+_MAX_ROTATION_STEP_RAD = 0.02
 # The two poses' relative error across the pipes (m): the limbs' sideways position and the roll between the
 # poses at the ground's depth. Shared by every point, it bounds the fit's precision whatever their number:
 # the height's relative error is this over the baseline.
@@ -85,6 +98,23 @@ def _anchored_points(
     return X, dX_dz, np.asarray(ok)
 
 
+def rotation_derivative(
+    T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, z_m: float,
+    direction: FloatArray,
+) -> FloatArray:
+    """de/dω (K, 3) (px per rad) of `across_residuals`' e, with its `direction` held, for the camera at pose
+    `T_rack_cam` turned by a small rotation ω (camera frame: R_rack_cam exp(ω)); zero rows for invalid points."""
+    X, _, ok = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
+    p = np.where(ok[:, None], (X - T_rack_cam[:3, 3]) @ T_rack_cam[:3, :3], 1.0)
+    _, J = camera.project_with_jacobian(p)
+    # Turning the camera by ω moves a point's camera coordinates p to exp(-ω) p ≈ p + p × ω = p + [p]ₓ ω.
+    skew = np.zeros((p.shape[0], 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+    de = -np.einsum("ni,nij,njk->nk", direction, J, skew)  # e = direction · (uv - uv_p)
+    return np.where(ok[:, None], de, 0.0)
+
+
 def fit_ground_height(
     T_rack_cam: FloatArray,
     camera: PinholeCamera,
@@ -93,14 +123,18 @@ def fit_ground_height(
     uv: FloatArray,
     z0_m: float,
     min_baseline_m: float,
+    estimate_rotation: bool = True,
 ) -> GroundHeightFit | None:
     """Height z of the plane {z = const} (rack frame) that best explains ground points seen now at `uv` (K, 2)
     from pose `T_rack_cam` and before along rays `anchor_d` (K, 3) from camera centres `anchor_o` (K, 3).
 
     Only points whose anchor lies at least `min_baseline_m` across the pipes (rack x) from the camera count,
-    by the residual component of `across_residuals`. Gauss-Newton from `z0_m` with Tukey's biweight; the
-    variance is at least what a 5 mm relative error of the two poses makes over the median baseline. None with
-    fewer than 8 such points or no fit.
+    by the residual component of `across_residuals`. Gauss-Newton from `z0_m` with Tukey's biweight, on the
+    height and, with `estimate_rotation`, a small rotation of the current camera (the two poses' relative
+    attitude error, not reported; the height's variance is then the marginal one). Without it the poses'
+    attitudes are taken as they are: the caller's choice when an attitude prior holds the tilt, where the
+    rotation would only cost the height precision. The variance is at least what a 5 mm relative error of the
+    two poses makes over the median baseline. None with fewer than 8 such points or no fit.
     """
     o = T_rack_cam[:3, 3]
     use = np.abs(o[0] - anchor_o[:, 0]) >= min_baseline_m
@@ -111,22 +145,36 @@ def fit_ground_height(
     top = float(np.min(ao[:, 2])) - 0.05  # the plane stays below every anchor camera
     var = np.inf
     n_used = 0
+    T = np.array(T_rack_cam, dtype=float)
+    n_par = 4 if estimate_rotation else 1
     for _ in range(_ITERATIONS):
-        e, de, ok, _ = across_residuals(T_rack_cam, camera, ao, ad, q, z)
+        e, de, ok, direction = across_residuals(T, camera, ao, ad, q, z)
         if np.count_nonzero(ok) < _MIN_POINTS:
             return None
-        e, de = e[ok], de[ok]
+        e, de_ok = e[ok], de[ok]
         scale = max(_MIN_SCALE_PX, 1.4826 * median_1d(np.abs(e)))
         u = e / (_TUKEY_C * scale)
         w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        info = float(np.sum(w * de * de))
+        info = float(np.sum(w * de_ok * de_ok))
         if not info > 0.0:
             return None
-        step = -float(np.sum(w * de * e)) / info
-        z = min(z + float(np.clip(step, -1.0, 1.0)), top)
+        if estimate_rotation:
+            A = np.concatenate([de_ok[:, None], rotation_derivative(T, camera, ao, ad, z, direction)[ok]], axis=1)
+            H = (A * w[:, None]).T @ A
+            H[1:, 1:] += _ROTATION_RIDGE * np.eye(3)
+            try:
+                H_inv = np.linalg.inv(H)
+            except np.linalg.LinAlgError:
+                return None
+            step = -H_inv @ ((A * w[:, None]).T @ e)
+            z_step, var_per_px2 = float(step[0]), float(H_inv[0, 0])
+            T[:3, :3] = T[:3, :3] @ so3.exp(np.clip(step[1:], -_MAX_ROTATION_STEP_RAD, _MAX_ROTATION_STEP_RAD))
+        else:
+            z_step, var_per_px2 = -float(np.sum(w * de_ok * e)) / info, 1.0 / info
+        z = min(z + float(np.clip(z_step, -1.0, 1.0)), top)
         n_used = int(np.count_nonzero(w > 0.0))
-        dof = max(float(np.sum(w)) - 1.0, 1.0)
-        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX**2) / info
+        dof = max(float(np.sum(w)) - n_par, 1.0)
+        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX**2) * var_per_px2
     if n_used < _MIN_POINTS or not np.isfinite(z):
         return None
     depth = float(np.median(ao[:, 2])) - z

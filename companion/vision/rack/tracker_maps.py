@@ -237,9 +237,11 @@ class TrackerMaps(TrackerState):
         solver when surer than the frame-to-frame z_g, and return which points (K,) lie on the ground (all of them
         until the height is known to `CONVERGED_STD_M`).
 
-        The solver gets it with a standard deviation of at least `ground_height_floor_m`: the fit follows each
-        run's slow roll drift (a relative roll between two poses and a wrong height make the same flow across
-        the pipes, 0-12 % on the stress bench), and held tighter that error turned into roll and sideways slide.
+        The solver gets it with a standard deviation of at least `ground_height_floor_m`: the fit followed each
+        run's slow roll drift (a relative roll between two poses and a wrong height make nearly the same flow
+        across the pipes, 0-12 % on the stress bench), and held tighter that error turned into roll and sideways
+        slide. Vision only, the fit now estimates that roll beside the height (`fit_ground_height`); the floor
+        is kept as it was.
         """
         cfg = self.config
         keep = np.ones(uv.shape[0], dtype=bool)
@@ -248,7 +250,11 @@ class TrackerMaps(TrackerState):
             return keep
         if self._zf is None:
             self._zf, self._zf_var, self._zf_rejected = float(self._z_g), 2.0**2, 0
-        fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m)
+        # Vision only, the relative roll of the two poses is the fit's to estimate (few parallel pipes trade it
+        # with a sideways slide); with an attitude prior the filtered gravity holds it, and estimating it too
+        # only loosened the height (docs/rack.md, "Twenty-fifth session on #14").
+        fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m,
+                                estimate_rotation=self._gravity is None)
         if fit is not None:
             self._zf, self._zf_var, self._zf_rejected = update_ground_height(self._zf, self._zf_var, fit,
                                                                              self._zf_rejected)
