@@ -75,6 +75,24 @@ def across_residuals(
     when given); de/dz holds that direction fixed, as Gauss-Newton does (it turns slowly with z). Invalid
     (e = de = 0): rays that do not descend to the plane or points behind the camera.
     """
+    e, de, ok, direction, _ = _across(T_rack_cam, camera, anchor_o, anchor_d, uv, z_m, direction)
+    return e, de, ok, direction
+
+
+def rotation_derivative(
+    T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, z_m: float,
+    direction: FloatArray,
+) -> FloatArray:
+    """de/dω (K, 3) (px per rad) of `across_residuals`' e, with its `direction` held, for the camera at pose
+    `T_rack_cam` turned by a small rotation ω (camera frame: R_rack_cam exp(ω)); zero rows for invalid points."""
+    return _across(T_rack_cam, camera, anchor_o, anchor_d, np.zeros((anchor_o.shape[0], 2)), z_m, direction)[4]
+
+
+def _across(
+    T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, uv: FloatArray,
+    z_m: float, direction: FloatArray | None,
+) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
+    """`across_residuals`' four results and `rotation_derivative`'s (K, 3), from one projection."""
     R = T_rack_cam[:3, :3]
     X, dX_dz, ok = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
     p_cam = np.where(ok[:, None], (X - T_rack_cam[:3, 3]) @ R, 1.0)
@@ -84,7 +102,12 @@ def across_residuals(
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
     e = np.einsum("ni,ni->n", direction, uv - uv_p)
     de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, np.where(ok[:, None], dX_dz, 0.0) @ R))
-    return np.where(ok, e, 0.0), np.where(ok, de, 0.0), ok, direction
+    # Turning the camera by ω moves a point's camera coordinates p to exp(-ω) p ≈ p + p × ω, so with
+    # g = Jᵀ direction, de = -g · (p × ω) = (p × g) · ω.
+    g = np.einsum("ni,nij->nj", direction, J)
+    de_dw = np.stack([p_cam[:, 1] * g[:, 2] - p_cam[:, 2] * g[:, 1], p_cam[:, 2] * g[:, 0] - p_cam[:, 0] * g[:, 2],
+                      p_cam[:, 0] * g[:, 1] - p_cam[:, 1] * g[:, 0]], axis=1)
+    return np.where(ok, e, 0.0), np.where(ok, de, 0.0), ok, direction, np.where(ok[:, None], de_dw, 0.0)
 
 
 def _anchored_points(
@@ -96,23 +119,6 @@ def _anchored_points(
     p_z = (X - T_rack_cam[:3, 3]) @ T_rack_cam[:3, 2]
     ok = np.isfinite(X[:, 0]) & (np.nan_to_num(p_z, nan=0.0) > 1e-3)
     return X, dX_dz, np.asarray(ok)
-
-
-def rotation_derivative(
-    T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, z_m: float,
-    direction: FloatArray,
-) -> FloatArray:
-    """de/dω (K, 3) (px per rad) of `across_residuals`' e, with its `direction` held, for the camera at pose
-    `T_rack_cam` turned by a small rotation ω (camera frame: R_rack_cam exp(ω)); zero rows for invalid points."""
-    X, _, ok = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
-    p = np.where(ok[:, None], (X - T_rack_cam[:3, 3]) @ T_rack_cam[:3, :3], 1.0)
-    _, J = camera.project_with_jacobian(p)
-    # Turning the camera by ω moves a point's camera coordinates p to exp(-ω) p ≈ p + p × ω = p + [p]ₓ ω.
-    skew = np.zeros((p.shape[0], 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
-    de = -np.einsum("ni,nij,njk->nk", direction, J, skew)  # e = direction · (uv - uv_p)
-    return np.where(ok[:, None], de, 0.0)
 
 
 def fit_ground_height(
@@ -148,7 +154,7 @@ def fit_ground_height(
     T = np.array(T_rack_cam, dtype=float)
     n_par = 4 if estimate_rotation else 1
     for _ in range(_ITERATIONS):
-        e, de, ok, direction = across_residuals(T, camera, ao, ad, q, z)
+        e, de, ok, _, de_dw = _across(T, camera, ao, ad, q, z, None)
         if np.count_nonzero(ok) < _MIN_POINTS:
             return None
         e, de_ok = e[ok], de[ok]
@@ -159,7 +165,7 @@ def fit_ground_height(
         if not info > 0.0:
             return None
         if estimate_rotation:
-            A = np.concatenate([de_ok[:, None], rotation_derivative(T, camera, ao, ad, z, direction)[ok]], axis=1)
+            A = np.concatenate([de_ok[:, None], de_dw[ok]], axis=1)
             H = (A * w[:, None]).T @ A
             H[1:, 1:] += _ROTATION_RIDGE * np.eye(3)
             try:
