@@ -9,8 +9,11 @@ Example (``clock`` is any `companion.clock.Clock`; tests pass a ManualClock)::
         link.send_pose(PoseOut(stamp_s, T_ned_body, pose_covariance))
 
 Modules: `url` (connection URLs), `transport` (UDP/TCP/serial on asyncio), `wire` (encode and a
-robust frame parser), `state` (decoding into `VehicleState`), `timesync`, `profiles` (ArduPilot /
-PX4 modes), `sendqueue` (the writer's bounded priority queue), `tlog`, `link` (`MavLink`).
+robust frame parser), `state` (decoding into `VehicleState`), `state_types` (`VehicleState`, `SimTruth`,
+`PoseOut`), `geodetic` (flat-earth NED), `timesync`, `profiles` (ArduPilot / PX4 modes), `sendqueue`
+(the writer's bounded priority queue), `tlog`, `link` (`MavLink`), `link_config` (`LinkConfig`),
+`link_status` (`LinkHealth`, `LinkStats`), and the parts of `MavLink`: `link_core`, `link_outbound`,
+`link_commands`, `link_reader`, `link_tasks`.
 """
 
 from companion.control.types import VelocityCommand
