@@ -53,7 +53,7 @@ sys.path.insert(0, str(ROOT))
 from companion.camera import PinholeCamera  # noqa: E402
 from companion.geometry import se3, so3  # noqa: E402
 from companion.jit import compiled_names  # noqa: E402
-from companion.sim import rack_scene_field  # noqa: E402
+from companion.sim import rack_scene_field, rack_scene_field_world  # noqa: E402
 from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig, decode_frame  # noqa: E402
 from companion.vision.rack import Pipe, RackModel, RackTracker, RackTrackerConfig  # noqa: E402
 from drivers.allocator import keep_freed_memory  # noqa: E402
@@ -177,7 +177,8 @@ def _source_key(cell: dict[str, Any], seed: int) -> str:
     """Cache key: the cell, the seed and the code that makes the frames."""
     h = hashlib.sha256()
     h.update(repr((sorted(cell.items()), seed)).encode())
-    h.update(Path(rack_scene_field.__file__).read_bytes())
+    for module in (rack_scene_field, rack_scene_field_world):
+        h.update(Path(module.__file__).read_bytes())
     for fn in (make_trajectory, _profile, coloured, render_run, build_rack, paper_s5_rack):
         h.update(inspect.getsource(fn).encode())
     return h.hexdigest()[:20]
