@@ -104,9 +104,7 @@ def _across(
     de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, np.where(ok[:, None], dX_dz, 0.0) @ R))
     # Turning the camera by ω moves a point's camera coordinates p to exp(-ω) p ≈ p + p × ω, so with
     # g = Jᵀ direction, de = -g · (p × ω) = (p × g) · ω.
-    g = np.einsum("ni,nij->nj", direction, J)
-    de_dw = np.stack([p_cam[:, 1] * g[:, 2] - p_cam[:, 2] * g[:, 1], p_cam[:, 2] * g[:, 0] - p_cam[:, 0] * g[:, 2],
-                      p_cam[:, 0] * g[:, 1] - p_cam[:, 1] * g[:, 0]], axis=1)
+    de_dw = np.cross(p_cam, np.einsum("ni,nij->nj", direction, J))
     return np.where(ok, e, 0.0), np.where(ok, de, 0.0), ok, direction, np.where(ok[:, None], de_dw, 0.0)
 
 
