@@ -79,6 +79,7 @@ def _keep_freed_memory() -> None:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from companion.sim.config_set import merge_overrides, parse_config_sets
     from companion.sim.ground_station import ground_station_overrides
     from companion.sim.run import SimOptions, parse_fault_spec, run_sim_cli
     from companion.sim.start_error import parse_start_error
@@ -97,7 +98,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         seed=int(args.seed),
         wind=not args.no_wind,
         speed=float(args.speed),
-        config_overrides=ground_station_overrides(args),
+        config_overrides=merge_overrides(ground_station_overrides(args), parse_config_sets(args.set)),
         start_error=start_error,
         seed_true_pose=bool(args.seed_true_pose),
         appearance=str(args.appearance),
@@ -240,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="boot the vehicle up to M metres and DEG degrees away from the configured start (seeded); "
                    "the daemon must find the rack in the image")
     p.add_argument("--seed-true-pose", action="store_true", help="hand the daemon the true start pose")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override the embedded configuration (a TOML value; a bare word is a string), e.g. "
+                   "vision.rack_verify_start=report or vision.rack_tracker.ground_points=0 (repeatable)")
     p.add_argument("-v", "--verbose", action="count", default=0, help="daemon log lines on stderr")
     from companion.sim.ground_station import add_ground_station_arguments
 

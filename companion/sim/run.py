@@ -159,8 +159,9 @@ def sim_config(out_dir: Path, overrides: dict[str, Any] | None = None) -> Any:
     data.setdefault("logging", {})["flight_root"] = str(out_dir / "flights")
     data.setdefault("mission", {})["photo_folder"] = str(out_dir / "photos")
     data["mission"]["upload_folder"] = str(out_dir / "missions")
-    for section, values in (overrides or {}).items():
-        data.setdefault(section, {}).update(values)
+    from companion.sim.config_set import merge_overrides
+
+    data = merge_overrides(data, overrides or {})
     return parse_config(data, source="<sim_default.toml>")
 
 

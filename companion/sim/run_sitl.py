@@ -72,8 +72,10 @@ async def run_sim_sitl(options: Any, out: TextIO) -> Any:
     out_dir = options.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     mission_path = options.mission_path or data_path("missions/paper_sweep.xml")
-    config = sim_config(out_dir, {"safety": {"battery_low_v": 11.1, "battery_critical_v": 10.5},
-                                  **options.config_overrides})
+    from companion.sim.config_set import merge_overrides
+
+    config = sim_config(out_dir, merge_overrides({"safety": {"battery_low_v": 11.1, "battery_critical_v": 10.5}},
+                                                 options.config_overrides))
     origin = (config.ekf_origin.lat_deg, config.ekf_origin.lon_deg, config.ekf_origin.alt_m)
     mission = load_mission(mission_path, limits=mission_limits(config))
     camera_model = load_camera_model(config.camera)

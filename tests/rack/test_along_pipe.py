@@ -127,3 +127,20 @@ def test_texture_weight_crossing_applies_over_a_crossing_pipe_with_fixed_gaps_on
     np.testing.assert_array_equal(gaps, poses(5.9, 6.1, texture_weight_crossing=None, estimate_gaps=True))
     with pytest.raises(InputError, match="texture_weight_crossing"):
         RackTrackerConfig(texture_weight_crossing=-1.0)
+
+
+def test_the_along_pipe_std_can_be_kept_out_of_the_reported_covariance() -> None:
+    """`along_pipe_widen_covariance=False` (the daemon's): the same poses and the same carried along-pipe std
+    (`along_pipe_std_m`, which the along-pipe scan reads), but the reported covariance is the solver's own."""
+    base = RackTrackerConfig(max_texture_points=0, ground_points=0)
+    tr_w, out_w = _run(PARALLEL, 4.0, 4.5, 26, base)
+    tr_n, out_n = _run(PARALLEL, 4.0, 4.5, 26, RackTrackerConfig(max_texture_points=0, ground_points=0,
+                                                                along_pipe_widen_covariance=False))
+    for (_T, a), (_T2, b) in zip(out_w, out_n, strict=True):
+        assert np.array_equal(a.T_rack_cam, b.T_rack_cam)
+    assert tr_n.along_pipe_std_m == tr_w.along_pipe_std_m > 0.1
+    T_est = np.asarray(out_n[-1][1].T_rack_cam)
+    widened = _along_std(np.asarray(out_w[-1][1].covariance), T_est)
+    kept = _along_std(np.asarray(out_n[-1][1].covariance), T_est)
+    assert widened == pytest.approx(tr_w.along_pipe_std_m)
+    assert kept < 0.1 * widened  # the solver's own (3.5 cm here against 51 cm carried)

@@ -134,7 +134,10 @@ class RackTrackerConfig:
     times the along-pipe distance moved where they do (frame-to-frame points carry the position, with
     drift, but never correct it), and shrinks only with edges that cross the pipes' direction (a crossing
     pipe, a pipe's end) or a `reset`; 0 = the solver's covariance alone (which conditions each frame on
-    the previous pose and says ~1 cm after metres without texture).
+    the previous pose and says ~1 cm after metres without texture). `along_pipe_widen_covariance`: whether
+    that standard deviation widens the reported covariance (True) or is only kept for the tracker's own use,
+    the along-pipe scan below and `RackTracker.along_pipe_std_m` (False: a consumer that fuses the pose with an
+    IMU which cannot carry the position for seconds, the daemon's filter, keeps following the held pose).
     `along_scan_range_m` (0 = off): while that standard deviation is more than half the edge search at the
     pipes' depth and a crossing pipe shows both its limbs, the camera's position along the pipes is searched
     up to that far (m) by the crossing pipe's two limbs at once (`along_scan.py`); the prediction is moved to
@@ -219,6 +222,7 @@ class RackTrackerConfig:
     texture_min_incidence_cos: float = 0.4
     along_pipe_unobserved_speed_m_s: float = 0.5
     along_pipe_points_drift: float = 0.2
+    along_pipe_widen_covariance: bool = True
     along_scan_range_m: float = 0.4
     retry_refused: bool = True
     retry_marginal: bool = True

@@ -172,7 +172,7 @@ class TrackerState:
         moved = dt * float(self._velocity[:3] @ e)
         self._along_std_m = along_pipe_std(self._along_std_m, dt, moved, held, edge_var,
                                            cfg.along_pipe_unobserved_speed_m_s, cfg.along_pipe_points_drift)
-        return widen_along(cov, e, self._along_std_m)
+        return widen_along(cov, e, self._along_std_m) if cfg.along_pipe_widen_covariance else cov
 
     def _along_px(self, T: FloatArray, along_m: float) -> float:
         """`along_m` (m) along the pipes seen from pose `T` (px): at the camera's height above the support plane,
