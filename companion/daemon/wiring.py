@@ -26,9 +26,9 @@ __all__ = ["DAEMON_RACK_TRACKER", "Wiring"]
 # at the TRUE pose (bench/rack_acquire.py, tracker_from_truth_rate 80.9 %) and `companion sim --appearance
 # field` aborted at action 5; the default appearance flies as before (docs/acquire.md).
 # Flying the library's settings instead (with `along_pipe_widen_covariance` off) was tried on 2026-12-01:
-# the field appearance completed in 3 of 4 runs within 7.7 cm, but one run walked 1 m off along the pipes on
-# the home leg, a confident wrong pose where these settings lose vision and land (docs/rack.md, "Twenty-
-# seventh session on #14"), so they stay.
+# on the field appearance seeds 1 and 3 completed within 7.7 cm, but on the home leg seed 1 run again walked
+# 1.08 m and seed 2 29 cm off along the pipes, confident wrong poses where these settings lose vision and land
+# (docs/rack.md, "Twenty-seventh session on #14"), so they stay.
 DAEMON_RACK_TRACKER: dict[str, Any] = {
     "ground_points": 0,
     "init_search_range_m": 0.25,
