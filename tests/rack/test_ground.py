@@ -134,3 +134,34 @@ def test_a_known_ground_height_holds_the_along_pipe_position_without_texture() -
         RackTrackerConfig(ground_height_m=0.5)
     with pytest.raises(InputError, match="ground_height_std_m"):
         RackTrackerConfig(ground_height_m=-2.0, ground_height_std_m=0.0)
+
+
+def test_the_ground_height_is_kept_across_a_reset() -> None:
+    """A re-seed (`reset`) forgets the ground points, which belong to the image, but not the ground's height,
+    which belongs to the scene (`ground_height_kept_on_reset`); with the option off the next frame starts it
+    again from the rough first guess."""
+    from companion.sim.rack_scene_field import FieldRackScene, FieldSceneConfig
+    from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+
+    model = RackModel.parallel(radii=[0.15, 0.2, 0.15], gaps=[0.1, 0.1], length=10.0)
+    scene = FieldRackScene(model, seed=4, config=FieldSceneConfig(ground="natural", num_spots=20, ground_z_m=-2.0,
+                                                                  jpeg_quality=0))
+    T = se3.make(so3.exp(np.radians([0.3, -0.2, 2.0])) @ R_DOWN, [0.3, 3.0, 2.3])
+    heights = {}
+    for kept in (True, False):
+        tr = RackTracker(model, CAM, RackTrackerConfig(ground_height_kept_on_reset=kept))
+        tr.reset(T)
+        rng = np.random.default_rng(6)
+        for k in range(60):
+            T_k = T @ se3.make(np.eye(3), [0.015 * k, 0.0, 0.0])  # across the pipes: the ground's depth shows
+            assert tr.track(scene.render(T_k, CAM, noise_std=3.0, rng=rng), k / 25.0).ok
+        z_before = float(tr._z_g)
+        tr.reset(T_k)
+        assert tr._ground_uv.shape[0] == 0  # the points are the image's: gone
+        T_next = T_k @ se3.make(np.eye(3), [0.015, 0.0, 0.0])
+        assert tr.track(scene.render(T_next, CAM, noise_std=3.0, rng=rng), 60 / 25.0).ok
+        heights[kept] = (z_before, float(tr._z_g))
+    (before, after), (_before_off, after_off) = heights[True], heights[False]
+    assert abs(before + 2.0) < 0.1  # learnt over the flight across the pipes (-1.995 m when written)
+    assert abs(after - before) < 0.05  # kept (the same value when written)
+    assert abs(after_off + 2.0) > 1.0  # off: the first guess again (-3.40 m when written)

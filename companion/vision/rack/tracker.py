@@ -77,7 +77,13 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         self._scale2_measured = False
         self._up_rack = None
         self._texture_check = TextureCheck()  # its frame indices restart with `_frames`
+        ground = (self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected)
         self._reset_ground()
+        if cfg.ground_height_kept_on_reset:
+            # The ground does not move when the tracker is re-seeded: starting its height from the rough first
+            # guess again scaled the along-pipe motion by the guess's error (`companion sim --appearance field`,
+            # seed 3: a re-seed mid-pass put z_g 1.2 m low and the estimate ran 1 m ahead within 4 s).
+            self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected = ground
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
         self._profiles[:] = 0.0

@@ -47,7 +47,9 @@ class RackTrackerConfig:
     reach full weight (1 = at once); `ground_height_m` (rack z, m; None = estimated online from a rough
     first guess) the ground's height when known (the rack's support height above grade from its drawing,
     a survey, or a rangefinder), held on every frame with `ground_height_std_m`: flying along the pipes
-    with no texture in view the ground's flow gives the speed over its depth only; `edge_tangent_px` > 0 averages each
+    with no texture in view the ground's flow gives the speed over its depth only; `ground_height_kept_on_reset`
+    keeps the estimated height (and its variance) across `reset` (the ground does not move when the tracker is
+    re-seeded; False starts it again from the rough first guess, as before 2026-12-01); `edge_tangent_px` > 0 averages each
     profile with two parallel ones that far along the limb (texture next to a straight limb
     averages out); `edge_distance_sigma_px` > 0 scales each candidate's score by a Gaussian of its
     distance from the rendered limb with this standard deviation (px), from each frame's second iteration
@@ -167,6 +169,7 @@ class RackTrackerConfig:
     ground_points: int = 60
     ground_weight: float = 1.0
     ground_along_only: bool = False
+    ground_height_kept_on_reset: bool = True
     ground_min_corner_ratio: float = 0.0
     ground_height_walk_m: float = 0.002
     ground_height_baseline_m: float = 0.1
