@@ -49,8 +49,8 @@ class RackTrackerConfig:
     a survey, or a rangefinder), held on every frame with `ground_height_std_m`: flying along the pipes
     with no texture in view the ground's flow gives the speed over its depth only; `ground_height_kept_on_reset`
     keeps the estimated height (and its variance) across `reset` (the ground does not move when the tracker is
-    re-seeded; False starts it again from the rough first guess, as before 2026-12-01); `edge_tangent_px` > 0 averages each
-    profile with two parallel ones that far along the limb (texture next to a straight limb
+    re-seeded; False starts it again from the rough first guess, as before 2026-12-01); `edge_tangent_px` > 0
+    averages each profile with two parallel ones that far along the limb (texture next to a straight limb
     averages out); `edge_distance_sigma_px` > 0 scales each candidate's score by a Gaussian of its
     distance from the rendered limb with this standard deviation (px), from each frame's second iteration
     on and at the tracking range only (0 = a Gaussian as wide as the range, nearly flat): a stronger ground
