@@ -130,7 +130,7 @@ def test_texture_weight_crossing_applies_over_a_crossing_pipe_with_fixed_gaps_on
 
 
 def test_the_along_pipe_std_can_be_kept_out_of_the_reported_covariance() -> None:
-    """`along_pipe_widen_covariance=False` (the daemon's): the same poses and the same carried along-pipe std
+    """`along_pipe_widen_covariance=False`: the same poses and the same carried along-pipe std
     (`along_pipe_std_m`, which the along-pipe scan reads), but the reported covariance is the solver's own."""
     base = RackTrackerConfig(max_texture_points=0, ground_points=0)
     tr_w, out_w = _run(PARALLEL, 4.0, 4.5, 26, base)

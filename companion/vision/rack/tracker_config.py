@@ -139,7 +139,8 @@ class RackTrackerConfig:
     the previous pose and says ~1 cm after metres without texture). `along_pipe_widen_covariance`: whether
     that standard deviation widens the reported covariance (True) or is only kept for the tracker's own use,
     the along-pipe scan below and `RackTracker.along_pipe_std_m` (False: a consumer that fuses the pose with an
-    IMU which cannot carry the position for seconds, the daemon's filter, keeps following the held pose).
+    IMU which cannot carry the position for seconds keeps following the held pose; tried in the daemon on
+    2026-12-01 and not adopted, docs/rack.md).
     `along_scan_range_m` (0 = off): while that standard deviation is more than half the edge search at the
     pipes' depth and a crossing pipe shows both its limbs, the camera's position along the pipes is searched
     up to that far (m) by the crossing pipe's two limbs at once (`along_scan.py`); the prediction is moved to
