@@ -11,6 +11,12 @@ synthetic camera (320x240 at 15 frames/s, resting on the deck over the rack), th
 off and on (``--runs`` each, ``--run-s`` seconds after a warm-up): pose rate (poses sent / s) and
 capture-to-send latency (median of the frames); the medians over the runs are compared.
 
+Part 3 (what the ground station sees): the same rig with the camera at 320x240, 20 frames/s and the stream
+scaled to 640x480 at 20 frames/s, decoded by PyAV from the SDP file the daemon wrote (as VLC or ffplay
+would), ``--runs`` runs of ``--run-s`` seconds after a 2 s warm-up: the decoded frame rate and the
+glass-to-decoded latency (the capture time on CLOCK_MONOTONIC read back from the stamp block against
+time.monotonic at decode), median and p90 per run, medians over the runs.
+
     python bench/video_stream.py [--runs 3] [--run-s 8] [--encode-s 10]
 
 Prints ONE JSON object on stdout; progress on stderr.
@@ -37,7 +43,7 @@ from companion.sim.run import sim_config
 from drivers.camera import load_camera_model
 from drivers.video import Overlay
 from drivers.video.streamer import FrameJob, VideoStreamer
-from sitl_tests.video_harness import free_udp_port, live_rig
+from sitl_tests.video_harness import RtpReceiver, free_udp_port, live_rig
 
 
 def log(msg: str) -> None:
@@ -126,6 +132,43 @@ async def vision_compare(runs: int, seconds: float) -> dict[str, Any]:
     return {"runs": out, "summary": summary}
 
 
+async def decoded_run(seconds: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as tmp:
+        async with live_rig(Path(tmp), width=320, height=240, fps=20.0,
+                            overrides={"video": {"width": 640, "height": 480, "fps": 20.0}}) as rig:
+            sdp = rig.daemon.video_sdp_path
+            assert sdp is not None
+            rx = RtpReceiver(sdp)
+            await asyncio.to_thread(rx.start)
+            t_measure = time.monotonic() + 2.0  # after the receiver's probing and the first key frame
+            await asyncio.sleep(2.0 + seconds)
+            rx.stop()
+    if rx.error is not None:
+        raise RuntimeError(f"decoding failed: {rx.error}")
+    window = [f for f in rx.frames if f.recv_mono_s >= t_measure]
+    rate = (len(window) - 1) / (window[-1].recv_mono_s - window[0].recv_mono_s) if len(window) > 1 else 0.0
+    lat = rx.latencies_ms(t_measure)
+    return {"frames_decoded": len(window), "decoded_per_s": round(rate, 2), "stamps_read": int(lat.size),
+            "latency_ms_p50": round(float(np.median(lat)), 1) if lat.size else None,
+            "latency_ms_p90": round(float(np.percentile(lat, 90)), 1) if lat.size else None}
+
+
+async def decoded_compare(runs: int, seconds: float) -> dict[str, Any]:
+    out = []
+    for k in range(runs):
+        r = await decoded_run(seconds)
+        log(f"decoded run {k + 1}/{runs}: {r}")
+        out.append(r)
+
+    def med(key: str) -> float | None:
+        vals = [r[key] for r in out if r[key] is not None]
+        return round(float(np.median(vals)), 1) if vals else None
+
+    return {"runs": out, "summary": {"decoded_per_s_median": med("decoded_per_s"),
+                                     "latency_ms_p50_median": med("latency_ms_p50"),
+                                     "latency_ms_p90_median": med("latency_ms_p90")}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
@@ -137,7 +180,9 @@ def main() -> None:
     enc = encoder_cost(args.encode_s)
     log(f"encoder: {enc}")
     vis = asyncio.run(vision_compare(args.runs, args.run_s))
+    dec = asyncio.run(decoded_compare(args.runs, args.run_s))
     print(json.dumps({"encoder": enc, "vision": vis["summary"], "vision_runs": vis["runs"],
+                      "decoded_640x480": dec["summary"], "decoded_runs": dec["runs"],
                       "machine_note": "2 cores shared with other work; compare the on/off medians of one run"}))
 
 

@@ -14,14 +14,21 @@ numpy code. Compiled code is cached beside the module that defines it, or in num
 compilation (about ten seconds on this project's 2-core x86 VM, longer on a Raspberry Pi).
 
 A flight process must not stall its vision loop on that compilation: `compile_in_background()` (called by
-the daemon at start) compiles every registered kernel set in a thread, and until it is done the callers
-get None and run numpy (the same results, slower).
+the daemon at start) gets every registered kernel set in a thread, and until it is done the callers get
+None and run numpy (the same results, slower). numba's compiler is Python code holding the GIL, so a
+compilation in that thread would still starve the event loop (heartbeats, the link: a cold cache cost the
+daemon its autopilot link for 3 s and most of its frames); the thread therefore first has a child process
+(`python -m companion.jit MODULE...`) compile and cache the kernels, waiting on it without the GIL, and
+then only loads them from the cache (under a second).
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
+import subprocess
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -91,14 +98,42 @@ def compile_in_background() -> threading.Thread | None:
     if not jit_enabled() or not _getters or (_background is not None and _background.is_alive()):
         return None
 
+    getters = list(_getters)
+
     def run() -> None:
-        for getter in list(_getters):
-            getter()
+        _compile_in_child(sorted({g.__module__ for g in getters}))
+        for getter in getters:
+            getter()  # loaded from the cache the child wrote (or compiled here when it could not)
         _log.info("compiled kernels ready: %s", ", ".join(compiled_names()) or "none")
 
     _background = threading.Thread(target=run, name="jit-compile", daemon=True)
     _background.start()
     return _background
+
+
+def _compile_in_child(modules: list[str], timeout_s: float = 600.0) -> bool:
+    """Compile and cache the kernels of `modules` in a child process; True when it succeeded. A failure
+    (no numba, no writable cache, a crash) is only logged: the caller then compiles in its own process."""
+    try:
+        done = subprocess.run([sys.executable, "-m", "companion.jit", *modules], capture_output=True, text=True,
+                              timeout=timeout_s, check=False)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        _log.warning("kernel compilation in a child process failed (%s); compiling in this one", exc)
+        return False
+    if done.returncode != 0:
+        _log.warning("kernel compilation in a child process exited %d (%s); compiling in this one",
+                     done.returncode, done.stderr.strip().splitlines()[-1:] or "no message")
+        return False
+    return True
+
+
+def compile_modules(modules: list[str]) -> list[str]:
+    """Import `modules` and get every kernel set they register (compiled and cached); the names compiled."""
+    for name in modules:
+        importlib.import_module(name)
+    for getter in list(_getters):
+        getter()
+    return compiled_names()
 
 
 def compiled_names() -> list[str]:
@@ -110,3 +145,11 @@ def forget_compiled() -> None:
     """Forget every kernel set, so that the next `compile_kernels` re-reads `COMPANION_JIT` (tests)."""
     with _lock:
         _compiled.clear()
+
+
+if __name__ == "__main__":  # the child of `compile_in_background`
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from companion import jit as _registry  # the modules register with the imported module, not __main__
+
+    names = _registry.compile_modules(sys.argv[1:])
+    print("compiled:", ", ".join(names) or "none")

