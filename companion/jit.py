@@ -40,6 +40,7 @@ K = TypeVar("K")
 _compiled: dict[str, Any] = {}  # name -> kernels, or None when unavailable (final either way)
 _lock = threading.Lock()
 _getters: list[Callable[[], Any]] = []
+_ready: set[Callable[[], Any]] = set()  # getters `compile_in_background` has seen through (no second child)
 _background: threading.Thread | None = None
 
 
@@ -93,17 +94,18 @@ def compile_kernels(name: str, build: Callable[[Callable[[Any], Any]], K], warm_
 
 
 def compile_in_background() -> threading.Thread | None:
-    """Compile (or load) every registered kernel set in a daemon thread; None when there is nothing to do."""
+    """Compile (or load) every registered kernel set in a daemon thread; None when there is nothing to do (the JIT
+    off, or every kernel set already got by an earlier call in this process: a daemon started again, a test)."""
     global _background
-    if not jit_enabled() or not _getters or (_background is not None and _background.is_alive()):
+    getters = [g for g in _getters if g not in _ready]
+    if not jit_enabled() or not getters or (_background is not None and _background.is_alive()):
         return None
-
-    getters = list(_getters)
 
     def run() -> None:
         _compile_in_child(sorted({g.__module__ for g in getters}))
         for getter in getters:
             getter()  # loaded from the cache the child wrote (or compiled here when it could not)
+            _ready.add(getter)
         _log.info("compiled kernels ready: %s", ", ".join(compiled_names()) or "none")
 
     _background = threading.Thread(target=run, name="jit-compile", daemon=True)
@@ -145,6 +147,7 @@ def forget_compiled() -> None:
     """Forget every kernel set, so that the next `compile_kernels` re-reads `COMPANION_JIT` (tests)."""
     with _lock:
         _compiled.clear()
+        _ready.clear()
 
 
 if __name__ == "__main__":  # the child of `compile_in_background`

@@ -61,6 +61,7 @@ def test_background_compilation_never_makes_a_caller_wait(monkeypatch: pytest.Mo
     kernels. The slow `build` here stands for numba's compilation."""
     monkeypatch.setattr(jit, "_compiled", {})
     monkeypatch.setattr(jit, "_background", None)
+    monkeypatch.setattr(jit, "_ready", set())
     release = threading.Event()
     started = threading.Event()
 
@@ -82,6 +83,7 @@ def test_background_compilation_never_makes_a_caller_wait(monkeypatch: pytest.Mo
     thread.join(10.0)
     assert not thread.is_alive()
     assert children == [[__name__]]  # the child process was asked for the getter's module first
+    assert jit.compile_in_background() is None and len(children) == 1  # started again: nothing left to do
     assert getter() == "kernels"
 
 
