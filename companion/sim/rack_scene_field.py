@@ -54,7 +54,10 @@ class FieldRackScene:
     `model` is the TRUE geometry; `seed` fixes textures, spots and beams.
     """
 
-    def __init__(self, model: RackModel, seed: int = 0, config: FieldSceneConfig | None = None) -> None:
+    def __init__(self, model: RackModel, seed: int = 0, config: FieldSceneConfig | None = None,
+                 ground_albedo: FloatArray | None = None) -> None:
+        """`ground_albedo` (H, W), values in 0..1, replaces the procedural ground (`config.ground`): an image (a
+        photograph of gravel, grass, paving) tiled over the ground plane, one texel `config.ground_texel_m`."""
         self.model = model
         self.config = cfg = config or FieldSceneConfig()
         rng = np.random.default_rng([seed, 7])
@@ -68,7 +71,13 @@ class FieldRackScene:
         self._light = light / np.linalg.norm(light)
         self._textures = [self._cladding(rng, float(r), float(L)) for r, L in zip(p.radii, p.lengths, strict=True)]
         self._spots = self._draw_spots(np.random.default_rng([seed, 11]))
-        self._ground = _ground_albedo(np.random.default_rng([seed, 13]), cfg.ground, 2048, cfg.ground_texel_m)
+        if ground_albedo is None:
+            self._ground = _ground_albedo(np.random.default_rng([seed, 13]), cfg.ground, 2048, cfg.ground_texel_m)
+        else:
+            g = np.asarray(ground_albedo, dtype=np.float32)
+            if g.ndim != 2 or min(g.shape) < 16 or not np.all(np.isfinite(g)):
+                raise InputError(f"ground_albedo: expected a finite (H, W) image of at least 16x16, got {g.shape}")
+            self._ground = np.ascontiguousarray(np.clip(g, 0.02, 1.0))
         self._box_lo, self._box_hi = _boxes(model, cfg, np.random.default_rng([seed, 17]))
         self._ray_cache: dict[PinholeCamera, F32] = {}
 
