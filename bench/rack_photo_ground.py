@@ -2,7 +2,8 @@
 
 The stress bench's grounds (`bench/rack_stress.py`) are procedural textures written in this project, and the
 tracker was tuned on them for weeks. Here the ground under the rack is a photograph instead: scikit-image's
-bundled texture photos (`skimage.data.brick`, `grass`, `gravel`, 512x512 grey), mirrored into a seamless tile
+bundled texture photos (`skimage.data.brick`, `grass`, `gravel`, 512x512 grey; the ground odometer's simulator
+uses them, the rack tracker never saw them), mirrored into a seamless tile
 of 2.4 m and laid on the ground plane at 1.2 m per photo width (a brick 5 x 25 cm, a stone 2-4 cm), their grey
 levels stretched to 0.06-0.9 (1st-99th percentile) so that the ground is as contrasted as the pipes. The brick
 paving's joints run along the pipes, next to and parallel to the limbs. Everything else is the stress bench's:
@@ -15,7 +16,7 @@ setting is to be chosen on it (tune on `bench/rack_stress.py`'s tuning half). It
 
     python bench/rack_photo_ground.py [--cells a,b] [--rows vision,edge_only,prior] [--render-only]
 
-Needs scikit-image (`pip install -e '.[bench]'`). Frames are cached as in the stress bench (`--cache-dir`).
+Frames are cached as in the stress bench (`--cache-dir`), keyed by the photo's pixels and the renderer's code.
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import rack_stress as rs  # the stress bench: its renderer set-up, tracker runs and summaries
 
+from companion.sim.ground_scene import load_texture  # the ground odometer's photos
+
 PHOTO_WIDTH_M = 1.2  # one photo width on the ground
 SEEDS = (10, 11)  # new seeds, never used for tuning
 # name: the stress bench's cell keys, and the photograph
@@ -51,13 +54,7 @@ PHOTO_CELLS: dict[str, dict[str, Any]] = {
 
 def photo_albedo(name: str) -> np.ndarray[Any, np.dtype[np.float32]]:
     """The photograph `name` of scikit-image's data as a seamless ground albedo tile (1024 x 1024, 0.06..0.9)."""
-    try:
-        import skimage.data
-    except ImportError as exc:  # an optional dependency: say how to get it
-        raise SystemExit("bench/rack_photo_ground.py needs scikit-image: pip install -e '.[bench]'") from exc
-    g = np.asarray(getattr(skimage.data, name)(), dtype=np.float32)
-    if g.ndim == 3:
-        g = cv2.cvtColor(g, cv2.COLOR_RGB2GRAY)
+    g = load_texture(name).astype(np.float32)
     lo, hi = np.percentile(g, [1.0, 99.0])
     g = 0.06 + 0.84 * np.clip((g - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     # mirrored copies: the wrapping lookup of the renderer then meets no seam
@@ -82,7 +79,7 @@ def load_photo_run(name: str, cell: dict[str, Any], seed: int, cache: Path | Non
     h = hashlib.sha256(rs._source_key(cell, seed).encode())
     h.update(albedo.tobytes())
     h.update(repr(PHOTO_WIDTH_M).encode())
-    for fn in (photo_albedo, photo_ground, load_photo_run):
+    for fn in (photo_ground, load_photo_run):  # the albedo's own bytes are hashed above
         h.update(inspect.getsource(fn).encode())
     path = None if cache is None else cache / f"photo_{name}_s{seed}_{h.hexdigest()[:20]}.pkl"
 
