@@ -157,3 +157,26 @@ def test_camera_pipeline_gain_motion_blur_and_jpeg() -> None:
     assert 0.3 < np.abs(raw.astype(float) - base).mean() < 4.0  # q70 artefacts: present, small
     ds = scene.image_motion_px(T, se3.make(R_DOWN, [0.64, 4.0, 2.4]), CAM)
     assert ds[0] == pytest.approx(-0.04 * 315.0 / (2.4 - 0.4), rel=1e-6) and abs(ds[1]) < 1e-9
+
+
+def test_a_ground_image_replaces_the_procedural_ground() -> None:
+    """`ground_albedo` lays an image on the ground plane (one texel `ground_texel_m`, wrapping): a ground seen
+    beside the rack shows its stripes (columns = rack x), the pipes do not change; bad images are refused."""
+    cfg = FieldSceneConfig(num_spots=0, ground_texel_m=0.01, **NO_BEAMS)
+    stripes = np.tile(np.where(np.arange(64) % 16 < 8, 0.1, 0.9), (64, 1))  # 16 cm period along rack x
+    T = se3.make(R_DOWN, [-1.6, 4.0, 1.2])  # the camera beside the rack: mostly ground (z = -2 m, 3.2 m away)
+    plain = FieldRackScene(MODEL, seed=3, config=cfg).render_float(T, CAM)
+    photo = FieldRackScene(MODEL, seed=3, config=cfg, ground_albedo=stripes).render_float(T, CAM)
+    row = photo[120, :100]  # ground only at the left of the image
+    period_px = 0.16 * CAM.fx / 3.2
+    spec = np.abs(np.fft.rfft(row - row.mean()))
+    k = int(np.argmax(spec[1:])) + 1
+    assert abs(100.0 / k - period_px) < 2.0  # the stripes' period, in pixels at the ground's depth
+    assert np.abs(photo[:, 100:] - plain[:, 100:]).max() > 0.1  # different grounds ...
+    T_over = se3.make(R_DOWN, [0.6, 4.0, 1.0])
+    over_plain = FieldRackScene(MODEL, seed=3, config=cfg).render_float(T_over, CAM)
+    over_photo = FieldRackScene(MODEL, seed=3, config=cfg, ground_albedo=stripes).render_float(T_over, CAM)
+    assert np.abs(over_plain[110:130, 170:190] - over_photo[110:130, 170:190]).max() < 1e-6  # ... the same pipe
+    for bad in (np.zeros((8, 8)), np.zeros((3, 40, 40)), np.full((32, 32), np.nan)):
+        with pytest.raises(InputError, match="ground_albedo"):
+            FieldRackScene(MODEL, seed=3, config=cfg, ground_albedo=bad)
