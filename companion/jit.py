@@ -25,6 +25,7 @@ then only loads them from the cache (under a second).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
 import os
 import subprocess
@@ -102,7 +103,8 @@ def compile_in_background() -> threading.Thread | None:
         return None
 
     def run() -> None:
-        _compile_in_child(sorted({g.__module__ for g in getters}))
+        if importlib.util.find_spec("numba") is not None:  # without numba there is nothing for a child to compile
+            _compile_in_child(sorted({g.__module__ for g in getters}))
         for getter in getters:
             getter()  # loaded from the cache the child wrote (or compiled here when it could not)
             _ready.add(getter)
