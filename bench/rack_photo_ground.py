@@ -22,14 +22,11 @@ Frames are cached as in the stress bench (`--cache-dir`), keyed by the photo's p
 from __future__ import annotations
 
 import argparse
-import contextlib
-import functools
 import hashlib
 import inspect
 import json
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -61,17 +58,6 @@ def photo_albedo(name: str) -> np.ndarray[Any, np.dtype[np.float32]]:
     return np.ascontiguousarray(np.block([[g, g[:, ::-1]], [g[::-1], g[::-1, ::-1]]]), dtype=np.float32)
 
 
-@contextlib.contextmanager
-def photo_ground(albedo: np.ndarray[Any, Any]) -> Iterator[None]:
-    """The stress bench's renderer with `albedo` laid on the ground (its scene class, given the photo)."""
-    plain = rs.FieldRackScene
-    rs.FieldRackScene = functools.partial(plain, ground_albedo=albedo)  # type: ignore[misc]
-    try:
-        yield
-    finally:
-        rs.FieldRackScene = plain  # type: ignore[misc]
-
-
 def load_photo_run(name: str, cell: dict[str, Any], seed: int, cache: Path | None) -> dict[str, Any]:
     albedo = photo_albedo(cell["photo"])
     texel_m = PHOTO_WIDTH_M / (albedo.shape[1] // 2)
@@ -79,20 +65,9 @@ def load_photo_run(name: str, cell: dict[str, Any], seed: int, cache: Path | Non
     h = hashlib.sha256(rs._source_key(cell, seed).encode())
     h.update(albedo.tobytes())
     h.update(repr(PHOTO_WIDTH_M).encode())
-    for fn in (photo_ground, load_photo_run):  # the albedo's own bytes are hashed above
-        h.update(inspect.getsource(fn).encode())
+    h.update(inspect.getsource(load_photo_run).encode())  # the albedo's own bytes are hashed above
     path = None if cache is None else cache / f"photo_{name}_s{seed}_{h.hexdigest()[:20]}.pkl"
-
-    def make() -> dict[str, Any]:
-        original = rs.FieldSceneConfig
-        rs.FieldSceneConfig = functools.partial(original, ground_texel_m=texel_m)  # type: ignore[misc]
-        try:
-            with photo_ground(albedo):
-                return rs.render_run(name, scene_cell, seed)
-        finally:
-            rs.FieldSceneConfig = original  # type: ignore[misc]
-
-    return rs.cached_pickle(path, make)
+    return rs.cached_pickle(path, lambda: rs.render_run(name, scene_cell, seed, albedo, texel_m))
 
 
 def main() -> None:

@@ -184,14 +184,17 @@ def _source_key(cell: dict[str, Any], seed: int) -> str:
     return h.hexdigest()[:20]
 
 
-def render_run(name: str, cell: dict[str, Any], seed: int) -> dict[str, Any]:
-    """Poses, camera and JPEG frames of one (cell, seed)."""
+def render_run(name: str, cell: dict[str, Any], seed: int, ground_albedo: np.ndarray | None = None,
+               ground_texel_m: float | None = None) -> dict[str, Any]:
+    """Poses, camera and JPEG frames of one (cell, seed); `ground_albedo` (and its texel, m) replaces the
+    procedural ground with an image (`bench/rack_photo_ground.py`)."""
     cell_seed = int(hashlib.sha256(f"{name}/{seed}".encode()).hexdigest()[:8], 16)
     rng = np.random.default_rng(cell_seed)
     model = build_rack(cell["rack"])
+    texel = {} if ground_texel_m is None else {"ground_texel_m": float(ground_texel_m)}
     cfg = FieldSceneConfig(num_spots=cell["F"], spots_y_m=cell.get("spots_y"), ground=cell["ground"],
-                           overhead_beams_y_m=tuple(cell.get("overhead", ())))
-    scene = FieldRackScene(model, seed=cell_seed, config=cfg)
+                           overhead_beams_y_m=tuple(cell.get("overhead", ())), **texel)
+    scene = FieldRackScene(model, seed=cell_seed, config=cfg, ground_albedo=ground_albedo)
     cam = CAMERA_DIST if cell.get("distort") else CAMERA
     poses = make_trajectory(cell["traj"], model, rng)
     gains = np.ones(len(poses))

@@ -97,6 +97,11 @@ class RtpReceiver:
         if self._thread is not None:
             self._thread.join(timeout=10.0)
 
+    def decoded_per_s(self, since_mono_s: float = 0.0) -> float:
+        """Frames decoded per second (receive clock) after `since_mono_s`; 0 with fewer than two."""
+        t = [f.recv_mono_s for f in self.frames if f.recv_mono_s >= since_mono_s]
+        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
+
     def latencies_ms(self, since_mono_s: float = 0.0) -> np.ndarray[Any, Any]:
         """Glass-to-decoded latency (ms) of every stamped frame decoded after `since_mono_s`."""
         out = [((int(f.recv_mono_s * 1000.0) - f.stamp_ms) & 0xFFFFFFFF) for f in self.frames
