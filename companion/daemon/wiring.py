@@ -54,6 +54,10 @@ DAEMON_RACK_TRACKER: dict[str, Any] = {
     # IMU for seconds (companion sim, field appearance, 2026-11-26: 0.7-1.9 m off within 10 s), so the
     # daemon keeps the solver's covariance there (docs/rack.md, "Fourth session on #14")
     "along_pipe_unobserved_speed_m_s": 0.0,
+    # library defaults since 2026-12-02 (stress bench only, not flown in the closed loop yet); the rescale needs
+    # ground points, which the daemon has off anyway
+    "along_rescale": False,
+    "coast_refused_frames": 0,
 }
 
 

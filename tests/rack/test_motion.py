@@ -184,3 +184,17 @@ def test_strength_weights_scale_edge_rows_by_their_contrast_relative_to_the_medi
     np.testing.assert_allclose(strength_weights(np.array([0.001, 40.0, 40.0]), 1.0), [0.05, 1.0, 1.0])  # floor
     np.testing.assert_array_equal(strength_weights(s, 0.0), np.ones(5))  # off
     assert strength_weights(np.zeros(0), 0.25).shape == (0,)
+
+
+def test_a_capped_biweight_scale_drops_a_coherent_half_of_outliers() -> None:
+    """Half the residuals on a wrong edge 3 px out: the MAD scale is ~2.3 px and the biweight keeps them (weight
+    ~0.8); with the scale capped at 0.8 px (c = 3.7 px) they get ~0.1, and the inliers keep theirs."""
+    rng = np.random.default_rng(11)
+    r = np.concatenate([0.3 * rng.standard_normal(50), 3.0 + 0.3 * rng.standard_normal(50)])
+    free = robust_weights(r, "tukey", 1.0, gate_px=4.0)
+    capped = robust_weights(r, "tukey", 1.0, gate_px=4.0, max_scale_px=0.8)
+    assert np.median(free[50:]) > 0.7
+    assert np.median(capped[50:]) < 0.15
+    assert np.median(capped[:50]) > 0.9
+    # a cap above the MAD scale changes nothing
+    assert np.array_equal(robust_weights(r, "tukey", 1.0, 4.0, max_scale_px=50.0), free)

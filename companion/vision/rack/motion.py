@@ -68,17 +68,24 @@ def strength_weights(strength: FloatArray, power: float, lo: float = 0.05, hi: f
     return np.asarray(np.clip((strength / max(med, 1e-6)) ** power, lo, hi))
 
 
-def robust_weights(r: FloatArray, kind: str, nu_px: float, gate_px: float | None = None) -> FloatArray:
+def robust_weights(
+    r: FloatArray, kind: str, nu_px: float, gate_px: float | None = None, max_scale_px: float | None = None
+) -> FloatArray:
     """IRLS weights of residuals r (px).
 
     kind "paper": s(e) = 1 / (ν + |e|) (eq. 29); "tukey": Tukey biweight with c = 4.685 × the
-    MAD scale (floored at ν / 2); "l2": ones. Residuals beyond `gate_px` get weight 0.
+    MAD scale (floored at ν / 2, capped at `max_scale_px` when given); "l2": ones. Residuals beyond
+    `gate_px` get weight 0.
     """
     a = np.abs(r)
     if kind == "paper":
         w = 1.0 / (nu_px + a)
     elif kind == "tukey":
         scale = max(1.4826 * median_1d(a) if a.size else 0.0, 0.5 * nu_px)
+        if max_scale_px is not None:
+            # Half the rows on one coherent wrong edge (a paving joint beside every limb) make the MAD as wide
+            # as their offset: the biweight then weighs them as inliers and the solve settles between the two.
+            scale = min(scale, max_scale_px)
         c = 4.685 * scale
         w = np.where(a < c, (1.0 - (a / c) ** 2) ** 2, 0.0)
     elif kind == "l2":

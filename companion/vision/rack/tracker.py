@@ -22,6 +22,7 @@ import numpy as np
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
+from companion.vision.rack.along_rescale import AlongLedger
 from companion.vision.rack.gap_scan import scan_gaps
 from companion.vision.rack.limbs import occluded
 from companion.vision.rack.motion import gated_residual_variance
@@ -62,6 +63,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         self._residual_px = 0.0
         self._last_clear = False
         self._along_moved = False
+        self._along_ledger = AlongLedger()
         self._relocking = False
         self._along_std_m = self._start_std[0]
         if cumulative_gaps is not None:
@@ -141,6 +143,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         else:
             img_f = img_raw
         first = not self._initialized  # wide, coarse-to-fine search until a frame is accepted
+        T_old, last_accepted = self._T, self._lost_frames == 0
         # ---- prediction
         T = self._T.copy()
         if cfg.velocity_prediction and self._last_stamp is not None:
@@ -253,7 +256,9 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         if ok and not first and cfg.texture_check_deg > 0.0 and cfg.max_texture_points > 0:
             self._check_texture(last, T)
         if ok:
-            if dt_s is not None and 0.0 < dt_s <= 0.5:
+            # Only from an accepted or a coasted last pose: the step from a held one, or to a relocked pose, is no
+            # motion (a 12 cm relock taken for 3 m/s had the next three frames refused).
+            if dt_s is not None and 0.0 < dt_s <= 0.5 and not first and self._lost_frames <= cfg.coast_refused_frames:
                 velocity = se3.log_one(se3.inverse(self._T) @ T) / dt_s
                 n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
                 if cfg.unobserved_velocity_tau_s > 0 and n_tex + n_ground < 3:
@@ -293,10 +298,13 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             self._update_ground(gray, T, last, cov_full)
             if not first:
                 self._T = self._feed_edge_pitch(last, T, pipes)  # the limbs' own pitch, slowly (edge_pitch.py)
+                if cfg.along_rescale and last_accepted:
+                    self._rescale_along(last, T_old, n_tex)
         else:
             self._T = T_pred
             self._last_clear = False
-            self._velocity = np.zeros(6)
+            if self._lost_frames >= cfg.coast_refused_frames:
+                self._velocity = np.zeros(6)
             self._velocity_known = False
             self._lost_frames += 1
             if self._initialized and not cfg.estimate_gaps and 0 < cfg.relock_after_frames <= self._lost_frames:
@@ -305,6 +313,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
                 # wide search locks onto grating bars and shadows and runs away (stress bench, 2026-11-24).
                 self._initialized = False
                 self._relocking = True
+                self._along_ledger = AlongLedger()
                 self._start_std = (cfg.relock_prior_translation_m, cfg.relock_prior_rotation_rad)
             self._ground_uv = np.zeros((0, 2))
             self._ground_age = np.zeros(0)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -72,7 +72,8 @@ class RackTrackerConfig:
     offset, where the biweight gives it none; the paper's weights are used in a frame's first iteration
     while the prediction has no measured velocity and in a first frame's coarse search, see `_solve`),
     "paper" (eq. 29, the paper's) or "l2"; `nu_px` the paper's ν (with "tukey" half of it floors the
-    MAD scale); `gate_px` residuals beyond this are dropped after the first iteration;
+    MAD scale); `robust_max_scale_px` > 0 caps the edge rows' biweight scale at that (0 = no cap; tried on
+    2026-12-02, not adopted: docs/rack.md); `gate_px` residuals beyond this are dropped after the first iteration;
     `max_iterations` / `min_iterations` per frame, stopping when the update is below
     `stop_translation_m` / `stop_rotation_rad` or moves the rendered edges by less than
     `stop_px` (median); `prior_*` the standard deviations of the per-iteration damping (a weak
@@ -146,6 +147,14 @@ class RackTrackerConfig:
     up to that far (m) by the crossing pipe's two limbs at once (`along_scan.py`); the prediction is moved to
     the best place when that lies beyond the edge search, scores at least `along_scan_min_gain` times the
     unmoved place and twice any other, and the last frame was accepted with a small edge residual.
+    `along_rescale`: the along-pipe travel of a stretch the ground points alone carried (no texture, no crossing
+    pipe) is rescaled to the ground height fitted once texture points on the pipes measure the travel again
+    (`along_rescale.py`: the ground's image motion gives the travel over the ground's depth, and that depth
+    was the first guess's); the pose, the texture points and the ground rays move together.
+    `coast_refused_frames`: over up to this many refused frames in a row the prediction keeps the last velocity
+    (then it holds the last pose): a camera that moves on while a marginal frame or two is refused is otherwise
+    left behind beyond the edge search, and with estimated gaps, which never search wide again, for good (the
+    stress bench's wrong-gap cell with the prior, 2026-12-02: 70 cm RMS from a 5 mm perturbation, 3.3 cm with it).
     `retry_refused`: a frame the health checks refuse is solved once more from the last pose's attitude
     and, given an attitude prior, from the prior's tilt (`tracker_health.py`: a shaking camera makes the
     motion prediction's attitude wrong by twice the last turn); the first start that passes is kept.
@@ -189,6 +198,7 @@ class RackTrackerConfig:
     occlusion_margin_px: float = 3.0
     robust: str = "tukey"
     nu_px: float = 1.0
+    robust_max_scale_px: float = 0.0
     gate_px: float = 4.0
     max_iterations: int = 3
     min_iterations: int = 2
@@ -231,6 +241,8 @@ class RackTrackerConfig:
     retry_refused: bool = True
     retry_marginal: bool = True
     along_scan_min_gain: float = 1.5
+    along_rescale: bool = True
+    coast_refused_frames: int = 3
     texture_min_corner_ratio: float = 10.0
     texture_crossing_edge_fraction: float = 0.5
     texture_check_deg: float = 0.3
@@ -246,8 +258,14 @@ class RackTrackerConfig:
     covariance_inflation: float = 4.0
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            # a switch given as "yes" or 0 in a config file would otherwise read as on or off unnoticed
+            if f.type == "bool" and not isinstance(getattr(self, f.name), (bool, np.bool_)):
+                raise InputError(f"{f.name}: expected true or false, got {getattr(self, f.name)!r}")
         if self.robust not in _ROBUST_KINDS:
             raise InputError(f"robust: expected one of {_ROBUST_KINDS}, got {self.robust!r}")
+        if self.coast_refused_frames < 0:
+            raise InputError(f"coast_refused_frames: must be >= 0, got {self.coast_refused_frames}")
         for name in ("samples_per_limb", "search_range_px", "init_search_range_px", "max_iterations",
                      "init_iterations", "detect_every", "lk_window_px", "template_half_px", "template_iterations"):
             if int(getattr(self, name)) < 1:
@@ -259,6 +277,8 @@ class RackTrackerConfig:
                              f"got {self.ground_height_m}")
         if not (np.isfinite(self.edge_distance_sigma_px) and self.edge_distance_sigma_px >= 0.0):
             raise InputError(f"edge_distance_sigma_px: must be >= 0 (0 = off), got {self.edge_distance_sigma_px}")
+        if not (np.isfinite(self.robust_max_scale_px) and self.robust_max_scale_px >= 0.0):
+            raise InputError(f"robust_max_scale_px: must be >= 0 (0 = no cap), got {self.robust_max_scale_px}")
         if not (np.isfinite(self.edge_strength_weight) and 0.0 <= self.edge_strength_weight <= 4.0):
             raise InputError(f"edge_strength_weight: must be in [0, 4] (0 = off), got {self.edge_strength_weight}")
         if not (np.isfinite(self.edge_innermost_ratio) and 0.0 <= self.edge_innermost_ratio <= 1.0):

@@ -219,6 +219,9 @@ class TrackerSolve(TrackerState):
                 # away by metres from a relock 12 cm off (tests/rack/test_tracker_relock.py).
                 kind = "paper"
             w[:n_w] = robust_weights(r[:n_w], kind, cfg.nu_px, gate)
+            if kind == "tukey" and cfg.robust_max_scale_px > 0.0 and n_edge:
+                # The edge rows with the scale capped (the texture and ground rows keep the frame's scale).
+                w[:n_edge] = robust_weights(r[:n_w], kind, cfg.nu_px, gate, cfg.robust_max_scale_px)[:n_edge]
             if cfg.edge_strength_weight > 0.0 and n_edge:
                 w[:n_edge] *= strength_weights(meas.strength[f], cfg.edge_strength_weight)
             texture_weight = cfg.texture_weight

@@ -10,7 +10,14 @@ import numpy as np
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.errors import InputError
-from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, widen_along
+from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, edges_see_along, widen_along
+from companion.vision.rack.along_rescale import (
+    AlongLedger,
+    after_shift,
+    clear_correction_m,
+    record_height,
+    record_step,
+)
 from companion.vision.rack.along_scan import scan_along
 from companion.vision.rack.limbs import LimbLines, limb_lines
 from companion.vision.rack.model import PipeArrays, RackModel
@@ -70,6 +77,7 @@ class TrackerState:
         self._relocking = False  # the wide search runs again after lost frames (`relock_after_frames`)
         self._gaps_scanned = False  # this frame's gaps come from `scan_gaps` (the first search stays narrow)
         self._along_moved = False  # this frame's prediction was moved by `_scan_along`
+        self._along_ledger = AlongLedger()  # the ground-held along-pipe stretch (`along_rescale.py`)
         self._since_detect = 0
         self._detect_short = False
         self._pipes_key: bytes | None = None
@@ -224,7 +232,47 @@ class TrackerState:
             self._anchor_o = self._anchor_o + shift
         self._texture.keep(np.zeros(len(self._texture), dtype=bool))
         self._stale_ref = np.zeros(0, dtype=bool)
+        self._along_ledger = AlongLedger()  # an absolute along-pipe fix
         return T
+
+    def _rescale_along(self, last: dict[str, Any], T_old: FloatArray, n_tex: int) -> None:
+        """Book this accepted frame's along-pipe step in the ground-held stretch, or rescale the stretch's travel
+        to the ground height fitted now that texture points measure the travel (`along_rescale.py`).
+
+        `T_old` is the last accepted pose (the step is from it). A crossing pipe (edges that see along the pipes)
+        fixes the along-pipe position absolutely and closes the stretch. A shift moves what was placed from the
+        drifted poses with the pose: the texture points and their reference centres, the ground points' rays.
+        """
+        if self._T is None:
+            return
+        n_edge = int(last["n_edge"])
+        if n_edge and edges_see_along(last["A"][:n_edge, :3], last["w"][:n_edge], self._T[:3, :3]):
+            self._along_ledger = AlongLedger()
+            return
+        z_g = last.get("z_g")
+        if z_g is None or int(last["i_z"]) < 0:
+            return
+        n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
+        if n_tex < 3:
+            if n_ground >= 3:
+                # the frame's solve used its own ground height for this step
+                self._along_ledger = record_step(self._along_ledger, float(self._T[1, 3] - T_old[1, 3]),
+                                                 float(self._T[2, 3]), float(z_g))
+            return
+        if not self._along_ledger.frames or self._z_g is None:
+            return
+        self._along_ledger = record_height(self._along_ledger, self._z_g)
+        shift_m = clear_correction_m(self._along_ledger)
+        if shift_m == 0.0:
+            return
+        self._along_ledger = after_shift(self._along_ledger, shift_m)
+        shift = np.array([0.0, shift_m, 0.0])
+        self._T = self._T.copy()
+        self._T[:3, 3] += shift
+        self._ground_o = self._ground_o + shift
+        self._anchor_o = self._anchor_o + shift
+        self._texture.offset_rack = self._texture.offset_rack + shift
+        self._texture.ref_o = self._texture.ref_o + shift
 
     def _reset_ground(self) -> None:
         # pipes' silhouettes at this frame's prediction and the ground mask they give (`ground.ground_mask`)
