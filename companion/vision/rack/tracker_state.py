@@ -12,6 +12,7 @@ from companion.checks import FloatArray
 from companion.errors import InputError
 from companion.vision.rack.along_pipe import along_pipe_std, edge_information_along, edges_see_along, widen_along
 from companion.vision.rack.along_rescale import (
+    MIN_TEXTURE_POINTS,
     AlongLedger,
     after_shift,
     clear_correction_m,
@@ -253,7 +254,7 @@ class TrackerState:
         if z_g is None or int(last["i_z"]) < 0:
             return
         n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
-        if n_tex < 3:
+        if n_tex < MIN_TEXTURE_POINTS:
             if n_ground >= 3:
                 # the frame's solve used its own ground height for this step
                 self._along_ledger = record_step(self._along_ledger, float(self._T[1, 3] - T_old[1, 3]),
