@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-MIN_TEXTURE_POINTS = 3  # a frame with fewer texture points in its solve is held by the ground (as `along_pipe.py`)
+MIN_TEXTURE_POINTS = 3  # a frame with fewer texture points in its solve is held by the ground (the tracker's count)
 MIN_DEPTH_M = 0.3  # below this the camera is at the ground: its depth ratio means nothing
 MIN_HEIGHT_FRAMES = 10  # texture-measured frames whose ground heights are averaged before a rescale
 MIN_HEIGHT_SPREAD_M = 0.05  # floor of the heights' spread in the significance test

@@ -227,10 +227,7 @@ class TrackerState:
         if not last_moved:
             # Moving the last pose on every frame kept a velocity error alive: a prediction 20 cm ahead was moved
             # back and the last pose 20 cm behind with it, frame after frame (field loop seed 2, 2026-11-28).
-            self._T = self._T.copy()
-            self._T[:3, 3] += shift
-            self._ground_o = self._ground_o + shift
-            self._anchor_o = self._anchor_o + shift
+            self._move_last_along(shift)
         self._texture.keep(np.zeros(len(self._texture), dtype=bool))
         self._stale_ref = np.zeros(0, dtype=bool)
         self._along_ledger = AlongLedger()  # an absolute along-pipe fix
@@ -268,12 +265,18 @@ class TrackerState:
             return
         self._along_ledger = after_shift(self._along_ledger, shift_m)
         shift = np.array([0.0, shift_m, 0.0])
+        self._move_last_along(shift)
+        self._texture.offset_rack = self._texture.offset_rack + shift
+        self._texture.ref_o = self._texture.ref_o + shift
+
+    def _move_last_along(self, shift: FloatArray) -> None:
+        """The last pose and the ground points' rays (camera centre and long-baseline anchors) moved by `shift`
+        (3,), rack frame (m): what was placed from a pose found off along the pipes."""
+        assert self._T is not None
         self._T = self._T.copy()
         self._T[:3, 3] += shift
         self._ground_o = self._ground_o + shift
         self._anchor_o = self._anchor_o + shift
-        self._texture.offset_rack = self._texture.offset_rack + shift
-        self._texture.ref_o = self._texture.ref_o + shift
 
     def _reset_ground(self) -> None:
         # pipes' silhouettes at this frame's prediction and the ground mask they give (`ground.ground_mask`)
