@@ -3,7 +3,8 @@
 The per-frame tracking code is vectorised numpy, and on its small arrays (a few hundred samples) most of
 its time is numpy's per-call overhead rather than arithmetic. A few hot loops are therefore also written
 as plain per-element Python loops and compiled with numba (`companion/vision/rack/rack_jit.py`,
-`companion/vision/rack/limbs_jit.py`, `companion/camera_jit.py`). Each does the same arithmetic in the same
+`companion/vision/rack/limbs_jit.py`, `companion/vision/rack/ground_height_jit.py`,
+`companion/vision/rack/corners_jit.py`, `companion/camera_jit.py`). Each does the same arithmetic in the same
 floating-point types and order as the numpy code it replaces, so that both give the same results (their
 tests compare them; `bench/rack_stress.py --throughput` measures the speed).
 

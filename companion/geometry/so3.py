@@ -11,6 +11,7 @@ Jacobians follow the convention of Barfoot, "State Estimation for Robotics":
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -73,6 +74,8 @@ def quaternion_from_matrix(R: Any) -> FloatArray:
     division is always by a number >= 1/2, which keeps full precision at pi.
     """
     R = check_last_two_dims(R, 3, 3, "R")
+    if R.shape == (3, 3):
+        return np.array(_quaternion_one(R))
     m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     trace = m00 + m11 + m22
     cand = np.stack([trace, m00, m11, m22], axis=-1)
@@ -112,6 +115,31 @@ def quaternion_from_matrix(R: Any) -> FloatArray:
     return result
 
 
+def _quaternion_one(R: FloatArray) -> tuple[float, float, float, float]:
+    """`quaternion_from_matrix` of one (3, 3) matrix in Python floats: the same operations in the same order (the
+    same bits), without the per-call cost of the array code (the tracker's health check calls it every frame)."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = R.tolist()
+    trace = m00 + m11 + m22
+    cand = (trace, m00, m11, m22)
+    k = cand.index(max(cand)) if not any(c != c for c in cand) else next(i for i, c in enumerate(cand) if c != c)
+    if k == 0:
+        s = math.sqrt(max(1.0 + trace, 1e-300)) * 2.0
+        q = (0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s)
+    elif k == 1:
+        s = math.sqrt(max(1.0 + m00 - m11 - m22, 1e-300)) * 2.0
+        q = ((m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s)
+    elif k == 2:
+        s = math.sqrt(max(1.0 - m00 + m11 - m22, 1e-300)) * 2.0
+        q = ((m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s)
+    else:
+        s = math.sqrt(max(1.0 - m00 - m11 + m22, 1e-300)) * 2.0
+        q = ((m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s)
+    if q[0] < 0.0:
+        q = (-q[0], -q[1], -q[2], -q[3])
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
 def matrix_from_quaternion(q: Any) -> FloatArray:
     """Rotation matrices (..., 3, 3) from quaternions (..., 4) ordered (w, x, y, z); normalizes."""
     q = check_last_dim(q, 4, "q")
@@ -139,6 +167,8 @@ def log(R: Any) -> FloatArray:
 
     At exactly pi the axis sign is arbitrary (both are valid logarithms).
     """
+    if isinstance(R, np.ndarray) and R.shape == (3, 3):
+        return _log_one(R)
     q = quaternion_from_matrix(R)
     qw = q[..., 0]
     qv = q[..., 1:]
@@ -153,6 +183,19 @@ def log(R: Any) -> FloatArray:
     )
     result: FloatArray = ratio[..., None] * qv
     return result
+
+
+def _log_one(R: FloatArray) -> FloatArray:
+    """`log` of one (3, 3) matrix in Python floats: the array code's operations in its order (the same bits;
+    arctan2 is numpy's, which differs from `math.atan2` in the last bit)."""
+    qw, x, y, z = _quaternion_one(R)
+    n = math.sqrt(x * x + y * y + z * z)
+    if n < 1e-6 * max(qw, 1e-300):
+        r = n / qw
+        ratio = (2.0 / qw) * (1.0 - r * r / 3.0)
+    else:
+        ratio = 2.0 * float(np.arctan2(n, qw)) / n
+    return np.array([ratio * x, ratio * y, ratio * z])
 
 
 def left_jacobian(w: Any) -> FloatArray:

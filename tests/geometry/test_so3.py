@@ -124,3 +124,15 @@ def test_bad_shapes_raise() -> None:
         so3.exp(np.array([np.nan, 0.0, 0.0]))
     with pytest.raises(InputError):
         so3.matrix_from_quaternion(np.zeros(4))
+
+
+def test_one_matrix_gives_the_array_codes_bits() -> None:
+    """`quaternion_from_matrix` and `log` of one (3, 3) matrix take a scalar path; it must give what the array code
+    gives for a stack of one, to the bit: rotations of every size, near pi, and not quite orthonormal."""
+    rng = np.random.default_rng(7)
+    mats = [so3.exp(rng.normal(size=3) * s) for s in (1e-9, 1e-5, 0.01, 1.0, 3.0) for _ in range(200)]
+    mats += [so3.exp(v / np.linalg.norm(v) * (np.pi - 10.0 ** -rng.uniform(0, 8))) for v in rng.normal(size=(200, 3))]
+    mats += [R + rng.normal(size=(3, 3)) * 1e-6 for R in mats[:200]] + [np.eye(3)]
+    for R in mats:
+        np.testing.assert_array_equal(so3.quaternion_from_matrix(R), so3.quaternion_from_matrix(R[None])[0])
+        np.testing.assert_array_equal(so3.log(R), so3.log(R[None])[0])

@@ -6,7 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.vision.rack.corners import strong_corners
+from companion.vision.rack import corners, corners_jit
+from companion.vision.rack.corners import shi_tomasi, strong_corners
 
 
 def _reference(gray: np.ndarray, mask: np.ndarray, max_corners: int, min_distance: float, ratio: float) -> np.ndarray:
@@ -41,9 +42,15 @@ def _scene(rng: np.random.Generator, kind: str) -> tuple[np.ndarray, np.ndarray]
     return gray, mask
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("kind", ["spots", "noise", "checker"])
 @pytest.mark.parametrize("ratio", [0.5, 3.0, 10.0])
-def test_equal_to_opencv_then_floor(kind: str, ratio: float) -> None:
+def test_equal_to_opencv_then_floor(kind: str, ratio: float, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both selections: the compiled one (`corners_jit.py`) and the numpy one it replaces."""
+    if not compiled:
+        monkeypatch.setattr(corners, "kernels", lambda: None)
+    elif corners_jit.kernels() is None:
+        pytest.skip("numba not available here")
     rng = np.random.default_rng(140 + int(10 * ratio))
     gray, mask = _scene(rng, kind)
     for max_corners, min_distance in ((8, 12.0), (94, 12.0), (500, 5.0), (60, 12.4)):
@@ -54,6 +61,25 @@ def test_equal_to_opencv_then_floor(kind: str, ratio: float) -> None:
             continue
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("kind", ["spots", "noise", "checker"])
+def test_shi_tomasi_is_opencvs_detector(kind: str) -> None:
+    """`shi_tomasi` (the compiled selection from OpenCV's eigenvalue map) returns `cv2.goodFeaturesToTrack`'s corners
+    in its order, for the ground points' quality level and the texture's, dense and sparse, with ties (checker)."""
+    rng = np.random.default_rng(150)
+    gray, mask = _scene(rng, kind)
+    for max_corners, min_distance, quality in ((8, 12.0, 0.01), (120, 12.0, 0.01), (500, 5.0, 0.02), (60, 12.4, 0.01),
+                                               (40, 1.0, 0.05)):
+        found = cv2.goodFeaturesToTrack(gray, maxCorners=max_corners, qualityLevel=quality, minDistance=min_distance,
+                                        mask=mask, blockSize=7)
+        want = np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
+        got = shi_tomasi(gray, mask, max_corners, min_distance, quality, 7)
+        assert got.dtype == np.float32 and got.shape[0] > 0
+        np.testing.assert_array_equal(got, want)
+    flat = np.full((40, 50), 90, dtype=np.uint8)
+    assert shi_tomasi(flat, np.full((40, 50), 255, np.uint8), 10, 12.0, 0.01, 7).shape == (0, 2)
+    assert shi_tomasi(gray, np.zeros_like(mask), 10, 12.0, 0.01, 7).shape == (0, 2)
 
 
 def test_degenerate_maps_ask_for_the_fallback() -> None:

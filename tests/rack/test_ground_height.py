@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from companion import jit
 from companion.camera import PinholeCamera
 from companion.errors import InputError
 from companion.geometry import se3, so3
+from companion.vision.rack import ground_height_jit
 from companion.vision.rack.ground_height import (
     MEMORY,
     GroundHeightFit,
@@ -172,3 +174,44 @@ def test_the_tracker_learns_the_grounds_height_flying_across_the_pipes() -> None
         RackTrackerConfig(ground_height_baseline_m=-0.1)
     with pytest.raises(InputError, match="ground_height_floor_m"):
         RackTrackerConfig(ground_height_floor_m=-1.0)
+
+
+@pytest.mark.skipif(ground_height_jit.kernels() is None, reason="numba not available here")
+@pytest.mark.parametrize("estimate_rotation", [True, False])
+def test_the_compiled_fit_gives_the_numpy_fits_bits(rng: np.random.Generator, estimate_rotation: bool,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ground_height_jit._fit` against `_iterate` on 20 seeded two-view cases of up to `MAX_POINTS` points
+    (outliers among them, some cases with too few points left on the baseline): the same fits to the bit."""
+    fits = 0
+    for case in range(20):
+        n = int(rng.integers(6, ground_height_jit.MAX_POINTS + 1))
+        T, o, d, uv, _ = _two_views(rng, (rng.uniform(0.05, 0.4), rng.uniform(-0.2, 0.2)), n=n)
+        uv[: n // 8] += rng.normal(0.0, 8.0, (n // 8, 2))  # outliers: zero biweights
+        o = o + np.column_stack([rng.uniform(-0.3, 0.3, n), np.zeros(n), np.zeros(n)])  # baselines differ
+        args = (T, CAM, o, d, uv, float(rng.uniform(-3.5, -1.0)), 0.1, estimate_rotation)
+        compiled = fit_ground_height(*args)
+        with monkeypatch.context() as m:
+            m.setattr(jit, "_compiled", {**jit._compiled, "rack.ground_height": None})
+            plain = fit_ground_height(*args)
+        assert compiled == plain, case
+        fits += compiled is not None
+    assert 10 <= fits < 20  # both outcomes exercised
+
+
+def test_the_fits_scalar_steps_agree_with_numpy(rng: np.random.Generator) -> None:
+    """`solve4` against `np.linalg.solve` / `inv` and `turn` against `so3.exp` (small and large angles)."""
+    for _ in range(10):
+        M = rng.normal(size=(4, 4))
+        H = M @ M.T + np.eye(4)
+        b = rng.normal(size=4)
+        step = np.empty(4)
+        var = ground_height_jit.solve4(H, b, step)
+        np.testing.assert_allclose(step, -np.linalg.solve(H, b), rtol=1e-10, atol=1e-12)
+        assert var == pytest.approx(np.linalg.inv(H)[0, 0], rel=1e-10)
+        for scale in (1e-5, 0.3):
+            w = rng.normal(size=3) * scale
+            R = so3.exp(rng.normal(size=3))
+            R_turned = R.copy()
+            ground_height_jit.turn(R_turned, *w)
+            np.testing.assert_allclose(R_turned, R @ so3.exp(w), rtol=0.0, atol=1e-14)
+    assert np.isnan(ground_height_jit.solve4(np.zeros((4, 4)), np.ones(4), np.empty(4)))

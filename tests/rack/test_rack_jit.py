@@ -22,7 +22,7 @@ from companion.vision.rack.motion import median_1d, pose_jacobian
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 MODEL = RackModel.parallel(radii=[0.15, 0.2, 0.15, 0.175], gaps=[0.1] * 3, length=10.0)
-JIT_NAMES = ("rack", "rack.limbs", "camera.pinhole")
+JIT_NAMES = ("rack", "rack.limbs", "rack.ground_height", "camera.pinhole")
 T = TypeVar("T")
 
 pytestmark = pytest.mark.skipif(rack_jit.kernels() is None, reason="numba not available here")

@@ -20,6 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from companion.vision.rack.corners_jit import kernels
+
 Float32Array = np.ndarray[Any, np.dtype[np.float32]]
 _CHUNK = 256  # candidates whose mutual distances are tested in one (chunk, chunk) array
 _MEDIAN_SUBSAMPLE_MIN = 8192  # below this a full selection is as quick as the bracket
@@ -59,6 +61,11 @@ def strong_corners(
     f32 = np.float32(bound)
     if float(f32) < bound:
         f32 = np.nextafter(f32, np.float32(np.inf))
+    ks = kernels()
+    if ks is not None:
+        # The same selection in one compiled pass (`corners_jit.py`).
+        return np.asarray(ks.select(ev, np.ascontiguousarray(mask), q32, f32, int(max_corners),
+                                    float(min_distance_px) ** 2))
     h, w = ev.shape
     cand = inside & (ev > q32) & (ev >= f32)
     # OpenCV looks at the interior only (its 3x3 maximum needs all neighbours).
@@ -98,6 +105,29 @@ def strong_corners(
                 return np.array([acc_x, acc_y], dtype=np.float32).T.copy()
             free &= ~near[i]
     return np.array([acc_x, acc_y], dtype=np.float32).reshape(2, -1).T.copy()
+
+
+def shi_tomasi(
+    gray: np.ndarray[Any, np.dtype[np.uint8]],
+    mask: np.ndarray[Any, np.dtype[np.uint8]],
+    max_corners: int,
+    min_distance_px: float,
+    quality_level: float,
+    block_size: int,
+) -> Float32Array:
+    """`cv2.goodFeaturesToTrack(gray, max_corners, quality_level, min_distance_px, mask=mask, blockSize=block_size)`
+    (gradient size 3, no Harris) as (J, 2) float32 (x, y), J = 0 when it finds none: the same corners, chosen by
+    the compiled selection from OpenCV's eigenvalue map when it is available (half the detector's time)."""
+    ks = kernels()
+    if ks is not None and max_corners > 0 and min_distance_px >= 1.0:
+        ev = np.asarray(cv2.cornerMinEigenVal(gray, block_size, ksize=3), dtype=np.float32)
+        max_val = float(cv2.minMaxLoc(ev, mask)[1])
+        if max_val > 0.0:
+            return np.asarray(ks.select(ev, np.ascontiguousarray(mask), np.float32(max_val * quality_level),
+                                        np.float32(-np.inf), int(max_corners), float(min_distance_px) ** 2))
+    found = cv2.goodFeaturesToTrack(gray, maxCorners=int(max_corners), qualityLevel=quality_level,
+                                    minDistance=float(min_distance_px), mask=mask, blockSize=block_size)
+    return np.zeros((0, 2), dtype=np.float32) if found is None else np.asarray(found, np.float32).reshape(-1, 2)
 
 
 def _median(vals: Float32Array) -> float:

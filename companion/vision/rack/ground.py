@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.vision.rack.corners import strong_corners
+from companion.vision.rack.corners import shi_tomasi, strong_corners
 from companion.vision.rack.limbs import LimbLines, clip_lines_to_view, limb_lines
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.motion import pose_jacobian
@@ -164,11 +164,10 @@ def detect_ground_points(
         if min_corner_ratio > 0 else None
     if strong is not None:
         return strong.astype(np.float64)[:max_new]
-    corners = cv2.goodFeaturesToTrack(gray, maxCorners=int(2 * max_new), qualityLevel=0.01,
-                                      minDistance=float(min_distance_px), mask=mask, blockSize=7)
-    if corners is None:
+    corners = shi_tomasi(gray, mask, int(2 * max_new), float(min_distance_px), 0.01, 7)
+    if corners.shape[0] == 0:
         return np.zeros((0, 2))
-    uv = corners.reshape(-1, 2).astype(np.float64)
+    uv = corners.astype(np.float64)
     if min_corner_ratio > 0:
         ev = np.asarray(cv2.cornerMinEigenVal(gray, 7, ksize=3))
         floor = float(np.median(ev[mask > 0]))

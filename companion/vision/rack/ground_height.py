@@ -28,8 +28,19 @@ import numpy as np
 
 from companion.camera import PinholeCamera
 from companion.checks import FloatArray
-from companion.geometry import so3
 from companion.vision.rack.ground import plane_points
+from companion.vision.rack.ground_height_jit import (
+    ITERATIONS,
+    MAX_POINTS,
+    MAX_ROTATION_STEP_RAD,
+    MIN_POINTS,
+    MIN_SCALE_PX,
+    ROTATION_RIDGE,
+    TUKEY_C,
+    kernels,
+    solve4,
+    turn,
+)
 from companion.vision.rack.motion import median_1d
 
 BoolArray = np.ndarray[Any, np.dtype[np.bool_]]
@@ -39,15 +50,15 @@ SETTLE_FRAMES = 50  # no fit before: anchors spanning the start's transient fitt
 MEMORY = 10.0  # consecutive fits share anchors and poses: each counts this many times less than it says
 CONVERGED_STD_M = 0.1  # below this the filter's height tests each point for lying on the ground
 
-_ITERATIONS = 4
-_TUKEY_C = 4.685
-_MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
-_MIN_POINTS = 8
+_ITERATIONS = ITERATIONS
+_TUKEY_C = TUKEY_C
+_MIN_SCALE_PX = MIN_SCALE_PX  # residual scale floor: LK's own error on a good corner
+_MIN_POINTS = MIN_POINTS
 # The fit's rotation (rad) is the two poses' relative attitude error, a fraction of a degree: the ridge (px² per
 # rad², tiny beside a point's ~600² px² per rad²) only keeps H invertible with few points, the step bound keeps
 # one bad iteration from turning the camera.
-_ROTATION_RIDGE = 1.0
-_MAX_ROTATION_STEP_RAD = 0.02
+_ROTATION_RIDGE = ROTATION_RIDGE
+_MAX_ROTATION_STEP_RAD = MAX_ROTATION_STEP_RAD
 # The two poses' relative error across the pipes (m): the limbs' sideways position and the roll between the
 # poses at the ground's depth. Shared by every point, it bounds the fit's precision whatever their number:
 # the height's relative error is this over the baseline.
@@ -92,20 +103,39 @@ def _across(
     T_rack_cam: FloatArray, camera: PinholeCamera, anchor_o: FloatArray, anchor_d: FloatArray, uv: FloatArray,
     z_m: float, direction: FloatArray | None,
 ) -> tuple[FloatArray, FloatArray, BoolArray, FloatArray, FloatArray]:
-    """`across_residuals`' four results and `rotation_derivative`'s (K, 3), from one projection."""
+    """`across_residuals`' four results and `rotation_derivative`'s (K, 3), from one projection.
+
+    Products with the pose's rotation are written out element by element (no matrix products), in the order
+    `ground_height_jit._fit` repeats for a pinhole camera, so that the compiled fit gives these bits.
+    """
     R = T_rack_cam[:3, :3]
     X, dX_dz, ok = _anchored_points(T_rack_cam, anchor_o, anchor_d, z_m)
-    p_cam = np.where(ok[:, None], (X - T_rack_cam[:3, 3]) @ R, 1.0)
+    d = X - T_rack_cam[:3, 3]
+    p_cam = np.where(ok[:, None], _times(d, R), 1.0)
     uv_p, J = camera.project_with_jacobian(p_cam)
     if direction is None:
-        direction = -np.einsum("nij,j->ni", J, R[0, :])  # a camera step along rack +x moves it by -J Rᵀ e_x
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
-    e = np.einsum("ni,ni->n", direction, uv - uv_p)
-    de = -np.einsum("ni,ni->n", direction, np.einsum("nij,nj->ni", J, np.where(ok[:, None], dX_dz, 0.0) @ R))
+        # a camera step along rack +x moves a point by -J Rᵀ e_x
+        du = -(J[:, 0, 0] * R[0, 0] + J[:, 0, 1] * R[0, 1] + J[:, 0, 2] * R[0, 2])
+        dv = -(J[:, 1, 0] * R[0, 0] + J[:, 1, 1] * R[0, 1] + J[:, 1, 2] * R[0, 2])
+        nrm = np.sqrt(du * du + dv * dv)
+        nrm = np.where(nrm >= 1e-12, nrm, 1e-12)
+        direction = np.stack([du / nrm, dv / nrm], axis=1)
+    du, dv = direction[:, 0], direction[:, 1]
+    e = du * (uv[:, 0] - uv_p[:, 0]) + dv * (uv[:, 1] - uv_p[:, 1])
+    g = _times(np.where(ok[:, None], dX_dz, 0.0), R)
+    de = -(du * (J[:, 0, 0] * g[:, 0] + J[:, 0, 1] * g[:, 1] + J[:, 0, 2] * g[:, 2])
+           + dv * (J[:, 1, 0] * g[:, 0] + J[:, 1, 1] * g[:, 1] + J[:, 1, 2] * g[:, 2]))
     # Turning the camera by ω moves a point's camera coordinates p to exp(-ω) p ≈ p + p × ω, so with
-    # g = Jᵀ direction, de = -g · (p × ω) = (p × g) · ω.
-    de_dw = np.cross(p_cam, np.einsum("ni,nij->nj", direction, J))
+    # h = Jᵀ direction, de = -h · (p × ω) = (p × h) · ω.
+    h = du[:, None] * J[:, 0, :] + dv[:, None] * J[:, 1, :]
+    px, py, pz = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
+    de_dw = np.stack([py * h[:, 2] - pz * h[:, 1], pz * h[:, 0] - px * h[:, 2], px * h[:, 1] - py * h[:, 0]], axis=1)
     return np.where(ok, e, 0.0), np.where(ok, de, 0.0), ok, direction, np.where(ok[:, None], de_dw, 0.0)
+
+
+def _times(a: FloatArray, R: FloatArray) -> FloatArray:
+    """a @ R for rows a (K, 3), each element a sum of three products left to right (no BLAS kernel's order)."""
+    return np.stack([a[:, 0] * R[0, c] + a[:, 1] * R[1, c] + a[:, 2] * R[2, c] for c in range(3)], axis=1)
 
 
 def _anchored_points(
@@ -114,7 +144,9 @@ def _anchored_points(
     """The anchor rays' points on the plane {z = `z_m`} (K, 3), their dX/dz (K, 3) and which are usable (K,):
     rays that reach the plane, in front of the camera at pose `T_rack_cam` (NaN rows elsewhere)."""
     X, dX_dz = plane_points(anchor_o, anchor_d, z_m)
-    p_z = (X - T_rack_cam[:3, 3]) @ T_rack_cam[:3, 2]
+    d = X - T_rack_cam[:3, 3]
+    R = T_rack_cam[:3, :3]
+    p_z = d[:, 0] * R[0, 2] + d[:, 1] * R[1, 2] + d[:, 2] * R[2, 2]
     ok = np.isfinite(X[:, 0]) & (np.nan_to_num(p_z, nan=0.0) > 1e-3)
     return X, dX_dz, np.asarray(ok)
 
@@ -145,46 +177,81 @@ def fit_ground_height(
     if np.count_nonzero(use) < _MIN_POINTS:
         return None
     ao, ad, q = anchor_o[use], anchor_d[use], uv[use]
-    z = float(z0_m)
     top = float(np.min(ao[:, 2])) - 0.05  # the plane stays below every anchor camera
-    var = np.inf
-    n_used = 0
-    T = np.array(T_rack_cam, dtype=float)
-    n_par = 4 if estimate_rotation else 1
-    for _ in range(_ITERATIONS):
-        e, de, ok, _, de_dw = _across(T, camera, ao, ad, q, z, None)
-        if np.count_nonzero(ok) < _MIN_POINTS:
+    ks = kernels() if camera.dist is None and ao.shape[0] <= MAX_POINTS else None
+    if ks is not None:
+        # The same iterations per point, compiled (`ground_height_jit.py`).
+        status, z, var, n_used = ks.fit(np.ascontiguousarray(T_rack_cam[:3, :3], dtype=np.float64),
+                                        np.ascontiguousarray(o, dtype=np.float64), np.ascontiguousarray(ao),
+                                        np.ascontiguousarray(ad), np.ascontiguousarray(q, dtype=np.float64),
+                                        float(z0_m), top, camera.fx, camera.fy, camera.skew, camera.cx, camera.cy,
+                                        bool(estimate_rotation))
+        if not status:
             return None
-        e, de_ok = e[ok], de[ok]
-        scale = max(_MIN_SCALE_PX, 1.4826 * median_1d(np.abs(e)))
-        u = e / (_TUKEY_C * scale)
-        w = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        info = float(np.sum(w * de_ok * de_ok))
-        if not info > 0.0:
+    else:
+        fitted = _iterate(T_rack_cam, camera, ao, ad, q, float(z0_m), top, estimate_rotation)
+        if fitted is None:
             return None
-        if estimate_rotation:
-            A = np.concatenate([de_ok[:, None], de_dw[ok]], axis=1)
-            H = (A * w[:, None]).T @ A
-            H[1:, 1:] += _ROTATION_RIDGE * np.eye(3)
-            try:
-                H_inv = np.linalg.inv(H)
-            except np.linalg.LinAlgError:
-                return None
-            step = -H_inv @ ((A * w[:, None]).T @ e)
-            z_step, var_per_px2 = float(step[0]), float(H_inv[0, 0])
-            T[:3, :3] = T[:3, :3] @ so3.exp(np.clip(step[1:], -_MAX_ROTATION_STEP_RAD, _MAX_ROTATION_STEP_RAD))
-        else:
-            z_step, var_per_px2 = -float(np.sum(w * de_ok * e)) / info, 1.0 / info
-        z = min(z + float(np.clip(z_step, -1.0, 1.0)), top)
-        n_used = int(np.count_nonzero(w > 0.0))
-        dof = max(float(np.sum(w)) - n_par, 1.0)
-        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX**2) * var_per_px2
+        z, var, n_used = fitted
     if n_used < _MIN_POINTS or not np.isfinite(z):
         return None
     depth = float(np.median(ao[:, 2])) - z
     baseline = float(np.median(np.abs(o[0] - ao[:, 0])))
     var = max(var, (depth * _BASELINE_ERROR_M / baseline) ** 2)
     return GroundHeightFit(z_m=z, var_m2=var, n_points=n_used)
+
+
+def _iterate(
+    T_rack_cam: FloatArray, camera: PinholeCamera, ao: FloatArray, ad: FloatArray, q: FloatArray, z0_m: float,
+    top: float, estimate_rotation: bool,
+) -> tuple[float, float, int] | None:
+    """`fit_ground_height`'s Gauss-Newton iterations in numpy: (z, variance, points used), or None. Sums are
+    numpy's (pairwise) over element-wise products, the 4x4 step and the rotation update scalar by scalar
+    (`ground_height_jit.solve4`, `turn`): the order the compiled fit repeats."""
+    z = z0_m
+    var = np.inf
+    n_used = 0
+    R = np.array(T_rack_cam[:3, :3], dtype=float)
+    T = np.array(T_rack_cam, dtype=float)
+    n_par = 4.0 if estimate_rotation else 1.0
+    H = np.empty((4, 4))
+    step = np.empty(4)
+    for _ in range(_ITERATIONS):
+        T[:3, :3] = R
+        e, de, ok, _, de_dw = _across(T, camera, ao, ad, q, z, None)
+        if np.count_nonzero(ok) < _MIN_POINTS:
+            return None
+        e, de_ok = e[ok], de[ok]
+        scale = 1.4826 * median_1d(np.abs(e))
+        if not scale >= _MIN_SCALE_PX:
+            scale = _MIN_SCALE_PX
+        u = e / (_TUKEY_C * scale)
+        a1 = 1.0 - u * u
+        w = np.where(np.abs(u) < 1.0, a1 * a1, 0.0)
+        info = float(np.sum(w * de_ok * de_ok))
+        if not info > 0.0:
+            return None
+        if estimate_rotation:
+            cols = [de_ok, de_dw[ok, 0], de_dw[ok, 1], de_dw[ok, 2]]
+            for r in range(4):
+                for c in range(4):
+                    H[r, c] = np.sum((cols[r] * w) * cols[c])
+            b = np.array([np.sum((cols[r] * w) * e) for r in range(4)])
+            for r in range(1, 4):
+                H[r, r] = H[r, r] + _ROTATION_RIDGE
+            var_per_px2 = solve4(H, b, step)
+            if np.isnan(var_per_px2):
+                return None
+            z_step = float(step[0])
+            lim = _MAX_ROTATION_STEP_RAD
+            turn(R, *(min(max(float(step[i]), -lim), lim) for i in (1, 2, 3)))
+        else:
+            z_step, var_per_px2 = -float(np.sum(w * de_ok * e)) / info, 1.0 / info
+        z = min(z + min(max(z_step, -1.0), 1.0), top)
+        n_used = int(np.count_nonzero(w > 0.0))
+        dof = max(float(np.sum(w)) - n_par, 1.0)
+        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX * _MIN_SCALE_PX) * var_per_px2
+    return z, var, n_used
 
 
 def update_ground_height(
