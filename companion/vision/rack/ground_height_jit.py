@@ -19,42 +19,18 @@ from typing import Any
 import numpy as np
 
 from companion.jit import compile_kernels, register
+from companion.vision.rack.rack_jit import _pairwise_py  # numpy's pairwise summation order, up to 128 values
 
 ITERATIONS = 4
 MAX_POINTS = 128  # numpy's pairwise summation block: up to this many values it is one block of eight sums
+# (`rack_jit._pairwise_py`, which starts a short sum from its first value where numpy adds it to 0.0: the same
+# value, but for the sign of a zero)
 TUKEY_C = 4.685
 MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
 MIN_POINTS = 8
 ROTATION_RIDGE = 1.0
 MAX_ROTATION_STEP_RAD = 0.02
 _SMALL_RAD = 1e-3  # `so3._coefficients`' series below this angle
-
-
-def _sum_py(x: Any, n: int) -> float:
-    """numpy's `np.sum` of x[0..n-1] (float64, n <= `MAX_POINTS`): left to right below eight values, else eight
-    running sums over blocks of eight, combined in pairs, then the rest left to right."""
-    if n < 8:
-        acc = 0.0
-        for i in range(n):
-            acc += x[i]
-        return acc
-    r0, r1, r2, r3, r4, r5, r6, r7 = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]
-    i = 8
-    while i < n - n % 8:
-        r0 += x[i]
-        r1 += x[i + 1]
-        r2 += x[i + 2]
-        r3 += x[i + 3]
-        r4 += x[i + 4]
-        r5 += x[i + 5]
-        r6 += x[i + 6]
-        r7 += x[i + 7]
-        i += 8
-    acc = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        acc += x[i]
-        i += 1
-    return float(acc)
 
 
 def solve4(H: Any, b: Any, step: Any) -> float:
@@ -126,7 +102,7 @@ def turn(R: Any, w0: float, w1: float, w2: float) -> None:
 
 # The shared steps as the kernel calls them: the Python functions, replaced by their compiled versions in `_build`
 # before the kernel is compiled (numba resolves a global function when it compiles its caller).
-_sum: Any = _sum_py
+_sum: Any = _pairwise_py
 _solve4: Any = solve4
 _turn: Any = turn
 
@@ -256,7 +232,7 @@ class Kernels:
 
 def _build(njit: Any) -> Kernels:
     global _sum, _solve4, _turn
-    _sum, _solve4, _turn = njit(_sum_py), njit(solve4), njit(turn)  # before their caller compiles
+    _sum, _solve4, _turn = njit(_pairwise_py), njit(solve4), njit(turn)  # before their caller compiles
     return Kernels(fit=njit(_fit))
 
 
