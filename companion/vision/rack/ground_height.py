@@ -50,15 +50,6 @@ SETTLE_FRAMES = 50  # no fit before: anchors spanning the start's transient fitt
 MEMORY = 10.0  # consecutive fits share anchors and poses: each counts this many times less than it says
 CONVERGED_STD_M = 0.1  # below this the filter's height tests each point for lying on the ground
 
-_ITERATIONS = ITERATIONS
-_TUKEY_C = TUKEY_C
-_MIN_SCALE_PX = MIN_SCALE_PX  # residual scale floor: LK's own error on a good corner
-_MIN_POINTS = MIN_POINTS
-# The fit's rotation (rad) is the two poses' relative attitude error, a fraction of a degree: the ridge (px² per
-# rad², tiny beside a point's ~600² px² per rad²) only keeps H invertible with few points, the step bound keeps
-# one bad iteration from turning the camera.
-_ROTATION_RIDGE = ROTATION_RIDGE
-_MAX_ROTATION_STEP_RAD = MAX_ROTATION_STEP_RAD
 # The two poses' relative error across the pipes (m): the limbs' sideways position and the roll between the
 # poses at the ground's depth. Shared by every point, it bounds the fit's precision whatever their number:
 # the height's relative error is this over the baseline.
@@ -174,7 +165,7 @@ def fit_ground_height(
     """
     o = T_rack_cam[:3, 3]
     use = np.abs(o[0] - anchor_o[:, 0]) >= min_baseline_m
-    if np.count_nonzero(use) < _MIN_POINTS:
+    if np.count_nonzero(use) < MIN_POINTS:
         return None
     ao, ad, q = anchor_o[use], anchor_d[use], uv[use]
     top = float(np.min(ao[:, 2])) - 0.05  # the plane stays below every anchor camera
@@ -193,7 +184,7 @@ def fit_ground_height(
         if fitted is None:
             return None
         z, var, n_used = fitted
-    if n_used < _MIN_POINTS or not np.isfinite(z):
+    if n_used < MIN_POINTS or not np.isfinite(z):
         return None
     depth = float(np.median(ao[:, 2])) - z
     baseline = float(np.median(np.abs(o[0] - ao[:, 0])))
@@ -216,16 +207,16 @@ def _iterate(
     n_par = 4.0 if estimate_rotation else 1.0
     H = np.empty((4, 4))
     step = np.empty(4)
-    for _ in range(_ITERATIONS):
+    for _ in range(ITERATIONS):
         T[:3, :3] = R
         e, de, ok, _, de_dw = _across(T, camera, ao, ad, q, z, None)
-        if np.count_nonzero(ok) < _MIN_POINTS:
+        if np.count_nonzero(ok) < MIN_POINTS:
             return None
         e, de_ok = e[ok], de[ok]
         scale = 1.4826 * median_1d(np.abs(e))
-        if not scale >= _MIN_SCALE_PX:
-            scale = _MIN_SCALE_PX
-        u = e / (_TUKEY_C * scale)
+        if not scale >= MIN_SCALE_PX:
+            scale = MIN_SCALE_PX
+        u = e / (TUKEY_C * scale)
         a1 = 1.0 - u * u
         w = np.where(np.abs(u) < 1.0, a1 * a1, 0.0)
         info = float(np.sum(w * de_ok * de_ok))
@@ -238,19 +229,19 @@ def _iterate(
                     H[r, c] = np.sum((cols[r] * w) * cols[c])
             b = np.array([np.sum((cols[r] * w) * e) for r in range(4)])
             for r in range(1, 4):
-                H[r, r] = H[r, r] + _ROTATION_RIDGE
+                H[r, r] = H[r, r] + ROTATION_RIDGE
             var_per_px2 = solve4(H, b, step)
             if np.isnan(var_per_px2):
                 return None
             z_step = float(step[0])
-            lim = _MAX_ROTATION_STEP_RAD
+            lim = MAX_ROTATION_STEP_RAD
             turn(R, *(min(max(float(step[i]), -lim), lim) for i in (1, 2, 3)))
         else:
             z_step, var_per_px2 = -float(np.sum(w * de_ok * e)) / info, 1.0 / info
         z = min(z + min(max(z_step, -1.0), 1.0), top)
         n_used = int(np.count_nonzero(w > 0.0))
         dof = max(float(np.sum(w)) - n_par, 1.0)
-        var = max(float(np.sum(w * e * e)) / dof, _MIN_SCALE_PX * _MIN_SCALE_PX) * var_per_px2
+        var = max(float(np.sum(w * e * e)) / dof, MIN_SCALE_PX * MIN_SCALE_PX) * var_per_px2
     return z, var, n_used
 
 

@@ -28,6 +28,9 @@ MAX_POINTS = 128  # numpy's pairwise summation block: up to this many values it 
 TUKEY_C = 4.685
 MIN_SCALE_PX = 0.3  # residual scale floor: LK's own error on a good corner
 MIN_POINTS = 8
+# The fit's rotation (rad) is the two poses' relative attitude error, a fraction of a degree: the ridge (px² per
+# rad², tiny beside a point's ~600² px² per rad²) only keeps H invertible with few points, the step bound keeps
+# one bad iteration from turning the camera.
 ROTATION_RIDGE = 1.0
 MAX_ROTATION_STEP_RAD = 0.02
 _SMALL_RAD = 1e-3  # `so3._coefficients`' series below this angle
