@@ -1,11 +1,14 @@
-"""`bench/rack_stress.py`'s per-cell summary: the errors along the rack's axes add up to the total."""
+"""`bench/rack_stress.py`: its per-cell summary (the errors along the rack's axes add up to the total) and its
+tracking on one OpenCV thread."""
 
 from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pytest
 
 
 def _bench() -> object:
@@ -34,3 +37,20 @@ def test_axes_rms_compose_the_total_rms() -> None:
     assert np.isclose(np.sqrt(np.sum(rot**2)), out["rms_orientation_deg"])
     assert xyz[1] > xyz[0] > xyz[2]  # the along-pipe axis carries the largest error here, by construction
     assert rot[0] > rot[1] > rot[2]
+
+
+def test_tracking_runs_opencv_on_one_thread_and_restores_its_pool() -> None:
+    """The frames/s are claimed single-threaded: OpenCV's own pool (which OMP_NUM_THREADS does not reach) is set to
+    one thread inside `one_thread()` and given back afterwards, also when the block raises."""
+    bench = _bench()
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        with bench.one_thread():  # type: ignore[attr-defined]
+            assert cv2.getNumThreads() == 1
+        assert cv2.getNumThreads() == 2
+        with pytest.raises(RuntimeError), bench.one_thread():  # type: ignore[attr-defined]
+            raise RuntimeError("a failed run")
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
