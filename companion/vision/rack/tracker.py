@@ -22,7 +22,7 @@ import numpy as np
 from companion.checks import FloatArray, check_transform
 from companion.errors import InputError, TrackingError
 from companion.geometry import se3
-from companion.vision.rack.along_rescale import AlongLedger
+from companion.vision.rack.along_rescale import MIN_TEXTURE_POINTS, AlongLedger
 from companion.vision.rack.gap_scan import scan_gaps
 from companion.vision.rack.limbs import occluded
 from companion.vision.rack.motion import gated_residual_variance
@@ -79,13 +79,13 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         self._scale2_measured = False
         self._up_rack = None
         self._texture_check = TextureCheck()  # its frame indices restart with `_frames`
-        ground = (self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected)
+        ground = (self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected, self._zf_across)
         self._reset_ground()
         if cfg.ground_height_kept_on_reset:
             # The ground does not move when the tracker is re-seeded: starting its height from the rough first
             # guess again scaled the along-pipe motion by the guess's error (`companion sim --appearance field`,
             # seed 3: a re-seed mid-pass put z_g 1.2 m low and the estimate ran 1 m ahead within 4 s).
-            self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected = ground
+            self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected, self._zf_across = ground
         self._polarity[:] = 0.0
         self._polarity_known[:] = False
         self._profiles[:] = 0.0
@@ -295,7 +295,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             self._update_polarity(last["samples"], last["meas"].sign, agree)
             self._update_profiles(last["samples"], last["meas"].inner, agree)
             self._update_texture(gray, img_raw, T, pipes, tex_uv, last["samples"])
-            self._update_ground(gray, T, last, cov_full)
+            self._update_ground(gray, T, last, cov_full, n_tex < MIN_TEXTURE_POINTS)
             if not first:
                 self._T = self._feed_edge_pitch(last, T, pipes)  # the limbs' own pitch, slowly (edge_pitch.py)
                 if cfg.along_rescale and last_accepted:

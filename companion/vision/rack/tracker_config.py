@@ -42,7 +42,11 @@ class RackTrackerConfig:
     ground point's ray since it was anchored, up to 25 frames back, once the camera has moved that far
     across the pipes (`ground_height.py`: the frame-to-frame z_g wanders by a metre, one frame's
     translation making as much flow as a few hundredths of a degree of rotation error), and hands it to the
-    solver with a standard deviation of at least `ground_height_floor_m`; `ground_trust_frames` the frames
+    solver with a standard deviation of at least `ground_height_floor_m`; `ground_height_vertical_m` > 0
+    (0 = off): on frames without that baseline whose along-pipe travel only the ground measured (fewer
+    than 3 texture points), from the points whose anchor lies that far above or below the camera, with
+    each anchor's along-pipe position free (`ground_height_vertical.py`; a height from such fits alone
+    is handed to the solver only on those frames); `ground_trust_frames` the frames
     a new ground point's rows take to
     reach full weight (1 = at once); `ground_height_m` (rack z, m; None = estimated online from a rough
     first guess) the ground's height when known (the rack's support height above grade from its drawing,
@@ -184,6 +188,7 @@ class RackTrackerConfig:
     ground_height_walk_m: float = 0.002
     ground_height_baseline_m: float = 0.1
     ground_height_floor_m: float = 0.5
+    ground_height_vertical_m: float = 0.008
     ground_trust_frames: int = 10
     ground_height_m: float | None = None
     ground_height_std_m: float = 0.05
@@ -285,6 +290,8 @@ class RackTrackerConfig:
             raise InputError(f"edge_innermost_ratio: must be in [0, 1] (0 = off), got {self.edge_innermost_ratio}")
         if not (np.isfinite(self.ground_height_baseline_m) and self.ground_height_baseline_m >= 0.0):
             raise InputError(f"ground_height_baseline_m: must be >= 0 (0 = off), got {self.ground_height_baseline_m}")
+        if not (np.isfinite(self.ground_height_vertical_m) and self.ground_height_vertical_m >= 0.0):
+            raise InputError(f"ground_height_vertical_m: must be >= 0 (0 = off), got {self.ground_height_vertical_m}")
         if not (np.isfinite(self.ground_height_floor_m) and self.ground_height_floor_m >= 0.0):
             raise InputError(f"ground_height_floor_m: must be >= 0, got {self.ground_height_floor_m}")
         if self.ground_trust_frames < 1:

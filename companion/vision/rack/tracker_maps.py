@@ -30,6 +30,7 @@ from companion.vision.rack.ground_height import (
     off_ground,
     update_ground_height,
 )
+from companion.vision.rack.ground_height_vertical import fit_ground_height_vertical
 from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.templates import align_templates, sample_patches, tangent_plane_warps
@@ -143,9 +144,11 @@ class TrackerMaps(TrackerState):
         return self._ground_o, self._ground_d[ok], uv[ok], self._ground_age[ok]
 
     def _update_ground(
-        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray
+        self, gray: np.ndarray[Any, np.dtype[np.uint8]], T: FloatArray, last: dict[str, Any], cov_full: FloatArray,
+        ground_held: bool,
     ) -> None:
-        """Keep the ground points that fit, add new ones, store their rays from this (accepted) pose."""
+        """Keep the ground points that fit, add new ones, store their rays from this (accepted) pose;
+        `ground_held`: too few texture points measured this frame's along-pipe travel (the ground's flow did)."""
         cfg = self.config
         if cfg.ground_points <= 0:
             return
@@ -172,7 +175,7 @@ class TrackerMaps(TrackerState):
                 keep_age = last["ground_age"][ok] + 1.0
                 if self._anchor_tracked is not None and self._anchor_tracked[0].shape[0] == ok.size:
                     a_o, a_d, a_age = (a[ok] for a in self._anchor_tracked)
-                    on_plane = self._fuse_ground_height(T, keep_uv, a_o, a_d)
+                    on_plane = self._fuse_ground_height(T, keep_uv, a_o, a_d, ground_held)
                     keep_uv, keep_age = keep_uv[on_plane], keep_age[on_plane]
                     anchors = (a_o[on_plane], a_d[on_plane], a_age[on_plane])
         # the predicted pose's silhouettes and ground mask (computed for tracking) are close enough for the margin
@@ -231,9 +234,10 @@ class TrackerMaps(TrackerState):
         self._anchor_o, self._anchor_d, self._anchor_age = a_o, a_d, a_age
 
     def _fuse_ground_height(
-        self, T: FloatArray, uv: FloatArray, anchor_o: FloatArray, anchor_d: FloatArray
+        self, T: FloatArray, uv: FloatArray, anchor_o: FloatArray, anchor_d: FloatArray, ground_held: bool
     ) -> np.ndarray[Any, np.dtype[np.bool_]]:
-        """Update the long-baseline ground height (`ground_height.py`) with this frame's kept points, hand it to the
+        """Update the long-baseline ground height (`ground_height.py`; on a `ground_held` frame without a sideways
+        baseline `ground_height_vertical.py`) with this frame's kept points, hand it to the
         solver when surer than the frame-to-frame z_g, and return which points (K,) lie on the ground (all of them
         until the height is known to `CONVERGED_STD_M`).
 
@@ -256,11 +260,21 @@ class TrackerMaps(TrackerState):
         fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m,
                                 estimate_rotation=self._gravity is None)
         if fit is not None:
+            self._zf_across = True
+        elif ground_held and cfg.ground_height_vertical_m > 0.0:
+            # No baseline across the pipes, and nothing but the ground measures the travel along them: the
+            # camera's vertical motion, with the poses' along-pipe positions left free (`ground_height_vertical.py`).
+            fit = fit_ground_height_vertical(T, self.camera, anchor_o, anchor_d, uv, self._zf,
+                                             cfg.ground_height_vertical_m)
+        if fit is not None:
             self._zf, self._zf_var, self._zf_rejected = update_ground_height(self._zf, self._zf_var, fit,
                                                                              self._zf_rejected)
         self._zf_var += cfg.ground_height_walk_m**2
         handed_var = max(self._zf_var, cfg.ground_height_floor_m**2)
-        if handed_var < self._z_g_var:
+        # A height from vertical fits alone stands in for the ground's depth only while the ground carries the
+        # along-pipe travel; once texture points measure it, the solver's own z_g is better (and the along-pipe
+        # rescale needs it: `along_rescale.py`).
+        if handed_var < self._z_g_var and (self._zf_across or ground_held):
             self._z_g, self._z_g_var = min(self._zf, 0.0), handed_var
         if self._zf_var < CONVERGED_STD_M**2:
             keep = ~off_ground(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.gate_px)

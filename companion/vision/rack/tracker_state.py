@@ -296,6 +296,7 @@ class TrackerState:
         self._zf: float | None = None
         self._zf_var = 0.0
         self._zf_rejected = 0
+        self._zf_across = False  # an across-the-pipes fit has been made (vertical fits alone hand it on less)
 
     def _ref_patch_size(self) -> int:
         """Side of the stored reference patches: room for the window scaled by up to ~1.6."""
