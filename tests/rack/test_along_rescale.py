@@ -11,6 +11,7 @@ from companion.errors import InputError
 from companion.geometry import se3
 from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
 from companion.vision.rack.along_rescale import (
+    FILTER_MAX_STD_M,
     MIN_DEPTH_M,
     MIN_HEIGHT_FRAMES,
     MIN_SHIFT_M,
@@ -18,6 +19,7 @@ from companion.vision.rack.along_rescale import (
     after_shift,
     clear_correction_m,
     correction_m,
+    filter_correction_m,
     record_height,
     record_step,
 )
@@ -103,6 +105,34 @@ def test_no_rescale_below_the_minimum_or_beyond_a_fraction_of_the_net_travel() -
     assert clear_correction_m(swing) == 0.0
 
 
+def test_a_filtered_height_rescales_once_sure_and_only_before_texture_heights() -> None:
+    led, travel = _stretch(-3.5, -2.0, 8)
+    # not yet surer than FILTER_MAX_STD_M (nor a meaningless spread)
+    for std in (2.0, 1.5 * FILTER_MAX_STD_M, 0.0, float("nan")):
+        assert filter_correction_m(led, -2.0, std) == 0.0
+    shift = filter_correction_m(led, -2.0, 0.3)
+    assert shift == pytest.approx(correction_m(led, -2.0)) and led.applied_m + shift == pytest.approx(travel)
+    # The same height again after the shift: nothing; a height one standard deviation off: a second shift.
+    moved = after_shift(led, shift)
+    assert filter_correction_m(moved, -2.0, 0.3) == 0.0
+    assert filter_correction_m(moved, -2.0 + 0.5 * 0.3, 0.3) == 0.0
+    assert filter_correction_m(moved, -2.0 + 1.2 * 0.3, 0.3) == pytest.approx(correction_m(moved, -2.0 + 0.36))
+    # once a texture-measured height is in the stretch, the texture rule decides
+    assert filter_correction_m(record_height(led, -2.0), -2.0, 0.3) == 0.0
+
+
+def test_a_filtered_height_does_not_rescale_small_or_back_and_forth_stretches() -> None:
+    short = AlongLedger()
+    for _ in range(10):
+        short = record_step(short, 0.01, 2.4, -2.1)
+    assert 0.0 < abs(correction_m(short, -2.0)) < MIN_SHIFT_M and filter_correction_m(short, -2.0, 0.01) == 0.0
+    swing = AlongLedger()
+    for _ in range(50):
+        swing = record_step(swing, 0.02, 2.4, -3.5)
+        swing = record_step(swing, -0.02, 2.4, -1.0)
+    assert abs(correction_m(swing, -2.0)) > 0.1 and filter_correction_m(swing, -2.0, 0.01) == 0.0
+
+
 def _tracker() -> RackTracker:
     model = RackModel.parallel(radii=[0.1, 0.1, 0.1, 0.1], gaps=[0.3, 0.3, 0.3], length=10.0)
     tr = RackTracker(model, CAM, RackTrackerConfig())
@@ -153,6 +183,27 @@ def test_ground_held_frames_book_steps_and_a_crossing_pipe_closes_the_stretch() 
     assert tr._along_ledger.per_depth == pytest.approx(0.02 / (2.4 + 2.0))
     tr._rescale_along(_last(tr, rows_along=True), T_old, 0)
     assert tr._along_ledger == AlongLedger()
+
+
+def test_ground_held_frames_rescale_to_the_filtered_height_unless_the_height_is_given() -> None:
+    for given in (None, -2.0):
+        tr = _tracker()
+        if given is not None:
+            tr.config = RackTrackerConfig(ground_height_m=given)
+        led, travel = _stretch(-3.5, -2.0, 9)
+        tr._along_ledger = led
+        tr._zf, tr._zf_var = -2.0, 0.8**2  # not sure yet: no shift
+        T_old = tr.T_rack_cam.copy()
+        tr._rescale_along(_last(tr), T_old, 0)
+        assert tr.T_rack_cam[1, 3] == T_old[1, 3]
+        tr._zf_var = 0.2**2
+        tr._rescale_along(_last(tr), T_old, 0)
+        booked = tr._along_ledger
+        if given is None:
+            assert booked.applied_m == pytest.approx(travel, abs=1e-9)  # the last step is at -2.0: booked as is
+            assert tr.T_rack_cam[1, 3] - T_old[1, 3] == pytest.approx(travel - led.applied_m, abs=1e-9)
+        else:  # a surveyed height holds every frame's solve: nothing to rescale to
+            assert tr.T_rack_cam[1, 3] == T_old[1, 3]
 
 
 def test_the_config_switch_is_a_bool() -> None:

@@ -20,6 +20,11 @@ by half the camera's depth to it; larger ones come from back-and-forth steps boo
 wandered, where the first-order depth model's own errors add up over the gross travel (the beam cell of
 the stress bench's held-back seeds: -3.2 cm on a 3 cm net of a 363-frame stretch, which doubled its error).
 
+Before any texture point measures a height, the long-baseline height filtered over the frames
+(`ground_height.py`, `ground_height_vertical.py`) rescales the stretch once it is surer than
+`FILTER_MAX_STD_M` (`filter_correction_m`): a flight along the pipes books its first seconds at the rough first
+guess, and the spots may be seconds away.
+
 Each ground-held frame i adds its along-pipe step dy_i (m, rack +y) measured at the camera height c_i
 (m, rack z) and ground height z_i (m): its image motion is proportional to dy_i / (c_i - z_i), so at a
 ground height z the step is dy_i (c_i - z) / (c_i - z_i). With S1 = sum of the steps as applied,
@@ -40,6 +45,7 @@ MIN_HEIGHT_SPREAD_M = 0.05  # floor of the heights' spread in the significance t
 SIGNIFICANCE = 3.0  # a rescale smaller than this many of its standard deviations is not made
 MIN_SHIFT_M = 0.02  # nor one smaller than this
 MAX_FRACTION = 0.5  # nor one larger than this fraction of the stretch's net travel
+FILTER_MAX_STD_M = 0.5  # a long-baseline height (`filter_correction_m`) is used once surer than this
 
 
 @dataclass(frozen=True)
@@ -86,6 +92,26 @@ def clear_correction_m(ledger: AlongLedger) -> float:
     spread = max(float(np.sqrt(max(ledger.height_sq_sum_m2 / n - mean * mean, 0.0))), MIN_HEIGHT_SPREAD_M)
     shift = correction_m(ledger, mean)
     if abs(shift) < max(SIGNIFICANCE * abs(ledger.per_depth) * spread, MIN_SHIFT_M):
+        return 0.0
+    return shift if abs(shift) <= MAX_FRACTION * abs(ledger.applied_m) else 0.0
+
+
+def filter_correction_m(ledger: AlongLedger, ground_z_m: float, ground_std_m: float) -> float:
+    """The along-pipe shift (m, rack +y) to the long-baseline ground height `ground_z_m` (m, rack z; filtered
+    over the frames, `ground_height.py` / `ground_height_vertical.py`) with standard deviation `ground_std_m`,
+    while no texture point has measured a height in the stretch; 0.0 when that height is not yet surer than
+    `FILTER_MAX_STD_M`, or the shift is smaller than its own standard deviation |S2| `ground_std_m` or
+    `MIN_SHIFT_M`, or larger than `MAX_FRACTION` of the stretch's net travel.
+
+    A stretch flown before that height was known was booked at the rough first guess (a 2 m standard
+    deviation, a third too long on the stress bench's along cell), and no texture may come for seconds. The
+    filtered height's own steps are far smaller than its spread, so one standard deviation (not the
+    texture rule's `SIGNIFICANCE` over single frames' heights) is enough to keep it from shifting the pose
+    back and forth; once texture points measure heights, `clear_correction_m` takes over."""
+    if ledger.height_frames or not (np.isfinite(ground_std_m) and 0.0 < ground_std_m <= FILTER_MAX_STD_M):
+        return 0.0
+    shift = correction_m(ledger, ground_z_m)
+    if abs(shift) < max(abs(ledger.per_depth) * float(ground_std_m), MIN_SHIFT_M):
         return 0.0
     return shift if abs(shift) <= MAX_FRACTION * abs(ledger.applied_m) else 0.0
 

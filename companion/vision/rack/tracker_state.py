@@ -16,6 +16,7 @@ from companion.vision.rack.along_rescale import (
     AlongLedger,
     after_shift,
     clear_correction_m,
+    filter_correction_m,
     record_height,
     record_step,
 )
@@ -234,8 +235,9 @@ class TrackerState:
         return T
 
     def _rescale_along(self, last: dict[str, Any], T_old: FloatArray, n_tex: int) -> None:
-        """Book this accepted frame's along-pipe step in the ground-held stretch, or rescale the stretch's travel
-        to the ground height fitted now that texture points measure the travel (`along_rescale.py`).
+        """Book this accepted frame's along-pipe step in the ground-held stretch and rescale the stretch's travel
+        to the long-baseline height once that is sure (`filter_correction_m`), or to the ground height fitted now
+        that texture points measure the travel (`clear_correction_m`; `along_rescale.py`).
 
         `T_old` is the last accepted pose (the step is from it). A crossing pipe (edges that see along the pipes)
         fixes the along-pipe position absolutely and closes the stretch. A shift moves what was placed from the
@@ -252,15 +254,19 @@ class TrackerState:
             return
         n_ground = 0 if last.get("ground_uv") is None else int(last["ground_uv"].shape[0])
         if n_tex < MIN_TEXTURE_POINTS:
-            if n_ground >= 3:
-                # the frame's solve used its own ground height for this step
-                self._along_ledger = record_step(self._along_ledger, float(self._T[1, 3] - T_old[1, 3]),
-                                                 float(self._T[2, 3]), float(z_g))
-            return
-        if not self._along_ledger.frames or self._z_g is None:
-            return
-        self._along_ledger = record_height(self._along_ledger, self._z_g)
-        shift_m = clear_correction_m(self._along_ledger)
+            if n_ground < 3:
+                return
+            # the frame's solve used its own ground height for this step
+            self._along_ledger = record_step(self._along_ledger, float(self._T[1, 3] - T_old[1, 3]),
+                                             float(self._T[2, 3]), float(z_g))
+            if self._zf is None or self.config.ground_height_m is not None:
+                return
+            shift_m = filter_correction_m(self._along_ledger, self._zf, float(np.sqrt(self._zf_var)))
+        else:
+            if not self._along_ledger.frames or self._z_g is None:
+                return
+            self._along_ledger = record_height(self._along_ledger, self._z_g)
+            shift_m = clear_correction_m(self._along_ledger)
         if shift_m == 0.0:
             return
         self._along_ledger = after_shift(self._along_ledger, shift_m)
