@@ -8,9 +8,13 @@ import pytest
 from companion.camera import PinholeCamera
 from companion.errors import InputError
 from companion.geometry import se3, so3
-from companion.vision.rack import RackTrackerConfig
-from companion.vision.rack.ground_height import fit_ground_height
-from companion.vision.rack.ground_height_vertical import fit_ground_height_vertical, vertical_rows
+from companion.vision.rack import RackModel, RackTracker, RackTrackerConfig
+from companion.vision.rack.ground_height import SETTLE_FRAMES, fit_ground_height
+from companion.vision.rack.ground_height_vertical import (
+    SETTLE_FRAMES_VERTICAL,
+    fit_ground_height_vertical,
+    vertical_rows,
+)
 from tests.numdiff import central_jacobian
 
 CAM = PinholeCamera(width=720, height=480, fx=630.0, fy=630.0, cx=360.0, cy=240.0)
@@ -93,6 +97,25 @@ def test_the_fit_is_unbiased_over_seeds() -> None:
         sd.append(np.sqrt(fit.var_m2))
     assert abs(np.mean(z) + 2.0) < 0.03
     assert np.std(z) < np.median(sd)
+
+
+def test_the_tracker_fits_vertically_from_a_full_anchor_window_and_across_only_after_the_settling(
+        rng: np.random.Generator) -> None:
+    """On a ground-held frame the vertical fit runs from `SETTLE_FRAMES_VERTICAL` on; on a frame whose travel
+    texture measured, nothing runs before `SETTLE_FRAMES` (the across fit's wait)."""
+    assert SETTLE_FRAMES_VERTICAL < SETTLE_FRAMES
+    T, o, d, uv = _along_flight(rng, 0.02, travel_scale=1.29, n_per_anchor=40)
+    model = RackModel.parallel(radii=[0.1, 0.1, 0.1, 0.1], gaps=[0.3, 0.3, 0.3], length=10.0)
+    for frames, held, fitted in ((SETTLE_FRAMES_VERTICAL - 1, True, False), (SETTLE_FRAMES_VERTICAL, True, True),
+                                 (SETTLE_FRAMES_VERTICAL, False, False), (SETTLE_FRAMES - 1, False, False)):
+        tr = RackTracker(model, CAM, RackTrackerConfig())
+        tr.reset(T)
+        tr._z_g, tr._z_g_var, tr._frames = -3.3, 4.0, frames
+        tr._fuse_ground_height(T, uv, o, d, held)
+        if fitted:
+            assert tr._zf is not None and tr._zf_var < 2.0**2 and abs(tr._zf + 2.0) < abs(-3.3 + 2.0)
+        else:
+            assert tr._zf is None, (frames, held)
 
 
 def test_config_refuses_a_negative_baseline() -> None:

@@ -24,7 +24,7 @@ from companion.camera import PinholeCamera
 from companion.checks import FloatArray
 from companion.geometry import so3
 from companion.vision.rack.ground import plane_points
-from companion.vision.rack.ground_height import GroundHeightFit
+from companion.vision.rack.ground_height import ANCHOR_FRAMES, GroundHeightFit
 from companion.vision.rack.ground_height_jit import (
     MAX_ROTATION_STEP_RAD,
     MIN_POINTS,
@@ -38,6 +38,12 @@ ITERATIONS = 6
 # The two poses' relative height error (m): the limbs give the camera's height above the pipes to about a
 # millimetre from frame to frame; the height's relative error is this over the vertical baseline.
 VERTICAL_ERROR_M = 0.002
+# No vertical fit before this frame: once the first anchors span a full window. The across fit waits longer
+# (`ground_height.SETTLE_FRAMES`) because the start's attitude transient, left in its anchors' relative roll,
+# fitted the wrong height confidently; this fit estimates the current camera's rotation and frees every anchor
+# centre's along-pipe position, and the along-pipe stretch it rescales (`along_rescale.filter_correction_m`)
+# grows by a frame's travel every frame it waits.
+SETTLE_FRAMES_VERTICAL = ANCHOR_FRAMES
 OFFSET_RIDGE = 1e-6  # px² per m²: keeps an offset seen by one point's along residual only solvable
 
 

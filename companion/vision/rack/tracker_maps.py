@@ -30,7 +30,7 @@ from companion.vision.rack.ground_height import (
     off_ground,
     update_ground_height,
 )
-from companion.vision.rack.ground_height_vertical import fit_ground_height_vertical
+from companion.vision.rack.ground_height_vertical import SETTLE_FRAMES_VERTICAL, fit_ground_height_vertical
 from companion.vision.rack.limbs import LimbSamples
 from companion.vision.rack.model import PipeArrays
 from companion.vision.rack.templates import align_templates, sample_patches, tangent_plane_warps
@@ -250,15 +250,17 @@ class TrackerMaps(TrackerState):
         cfg = self.config
         keep = np.ones(uv.shape[0], dtype=bool)
         if cfg.ground_height_baseline_m <= 0.0 or cfg.ground_height_m is not None or self._z_g is None \
-                or self._frames < SETTLE_FRAMES:
+                or self._frames < (SETTLE_FRAMES_VERTICAL if ground_held else SETTLE_FRAMES):
             return keep
         if self._zf is None:
             self._zf, self._zf_var, self._zf_rejected = float(self._z_g), 2.0**2, 0
         # Vision only, the relative roll of the two poses is the fit's to estimate (few parallel pipes trade it
         # with a sideways slide); with an attitude prior the filtered gravity holds it, and estimating it too
         # only loosened the height (docs/rack.md, "Twenty-fifth session on #14").
-        fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m,
-                                estimate_rotation=self._gravity is None)
+        fit = None
+        if self._frames >= SETTLE_FRAMES:
+            fit = fit_ground_height(T, self.camera, anchor_o, anchor_d, uv, self._zf, cfg.ground_height_baseline_m,
+                                    estimate_rotation=self._gravity is None)
         if fit is not None:
             self._zf_across = True
         elif ground_held and cfg.ground_height_vertical_m > 0.0:
