@@ -118,6 +118,17 @@ def test_the_tracker_fits_vertically_from_a_full_anchor_window_and_across_only_a
             assert tr._zf is None, (frames, held)
 
 
+def test_without_vertical_fits_a_ground_held_frame_waits_for_the_settling_too(rng: np.random.Generator) -> None:
+    """With `ground_height_vertical_m=0` nothing fits early, so the height filter is not started early either."""
+    T, o, d, uv = _along_flight(rng, 0.02, travel_scale=1.29, n_per_anchor=40)
+    model = RackModel.parallel(radii=[0.1, 0.1, 0.1, 0.1], gaps=[0.3, 0.3, 0.3], length=10.0)
+    tr = RackTracker(model, CAM, RackTrackerConfig(ground_height_vertical_m=0.0))
+    tr.reset(T)
+    tr._z_g, tr._z_g_var, tr._frames = -3.3, 4.0, SETTLE_FRAMES - 1
+    tr._fuse_ground_height(T, uv, o, d, True)
+    assert tr._zf is None
+
+
 def test_config_refuses_a_negative_baseline() -> None:
     with pytest.raises(InputError, match="ground_height_vertical_m"):
         RackTrackerConfig(ground_height_vertical_m=-0.01)

@@ -249,8 +249,11 @@ class TrackerMaps(TrackerState):
         """
         cfg = self.config
         keep = np.ones(uv.shape[0], dtype=bool)
+        # Only the vertical fit may start early (a full anchor window); with it switched off nothing fits before
+        # the across fit's settling, so the filter is not started before then either.
+        vertical_early = ground_held and cfg.ground_height_vertical_m > 0.0
         if cfg.ground_height_baseline_m <= 0.0 or cfg.ground_height_m is not None or self._z_g is None \
-                or self._frames < (SETTLE_FRAMES_VERTICAL if ground_held else SETTLE_FRAMES):
+                or self._frames < (SETTLE_FRAMES_VERTICAL if vertical_early else SETTLE_FRAMES):
             return keep
         if self._zf is None:
             self._zf, self._zf_var, self._zf_rejected = float(self._z_g), 2.0**2, 0
