@@ -162,3 +162,27 @@ async def test_gcs_back_ends_the_hold_and_the_mission_resumes(tmp_path: Path) ->
         await r.advance_until(lambda: r.ap.mode == "GUIDED", max_s=3.0)
         assert first_mode_command(r, 4.0, t_fault) is not None and first_mode_command(r, LAND, t_fault) is None
         assert r.ap.armed and r.ap.truth.height_m > 0.8
+
+
+async def test_vision_loss_during_the_take_off_climb_holds_then_the_take_off_finishes(tmp_path: Path) -> None:
+    # The brake cuts ArduCopter's NAV_TAKEOFF climb short and the daemon drops the take-off request it was
+    # waiting on; resumed in the air, the take-off action climbs with the servo instead of waiting out its timeout.
+    async with rig(tmp_path, overrides={"safety": {"vision_loss_hover_ms": 200}}) as r:
+        await r.start_mission(mission(HOVER_LONG.replace('height="1.0"', 'height="1.5"'), name="climb-loss",
+                                      timeout_s=90.0))
+        ex = r.daemon.executor
+        assert ex is not None
+        await r.advance_until(lambda: r.ap.truth.height_m > 0.4, max_s=20.0)
+        assert not ex.results  # still climbing under NAV_TAKEOFF
+        t_fault = r.clock.now()
+        r.camera.featureless = True
+        await r.advance_until(lambda: first_mode_command(r, BRAKE, t_fault) is not None, max_s=2.0)
+        await r.advance(0.5)
+        assert r.ap.mode == "BRAKE" and ex.state is State.PAUSED
+        height_held_m = r.ap.truth.height_m
+        assert height_held_m < 1.3
+        r.camera.featureless = False
+        await r.advance_until(lambda: bool(ex.results), max_s=20.0)
+        assert ex.results[0].action_id == "takeoff" and ex.results[0].result == "succeeded", ex.results[0]
+        assert r.ap.mode == "GUIDED" and abs(r.ap.truth.height_m - 1.5) < 0.15
+        assert first_mode_command(r, LAND, t_fault) is None

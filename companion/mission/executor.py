@@ -172,11 +172,18 @@ class MissionExecutor(_ActionSteps):
         if self._state is not State.PAUSED:
             raise MissionError(f"cannot resume: mission is {self._state.value}")
         paused_s = max(0.0, float(now_s) - (self._paused_at if self._paused_at is not None else float(now_s)))
-        if self._current is not None:
-            self._current.started_s += paused_s
+        cur = self._current
+        if cur is not None:
+            cur.started_s += paused_s
             for key in ("hover_start_s", _ALONG_PIPE_WAIT):
-                if key in self._current.extra:
-                    self._current.extra[key] += paused_s
+                if key in cur.extra:
+                    cur.extra[key] += paused_s
+            if cur.request is not None and cur.request_ok is None:
+                # The pause's hold superseded the request this action waited for (the daemon runs one request
+                # at a time): a take-off cut short by a vision-loss brake would wait for its climb forever.
+                # The action starts its discrete part again from what the vehicle does now (airborne: the
+                # servo climbs; on the ground: take off again; disarmed: arm again).
+                cur.phase, cur.request = "start", None
         self._paused_at = None
         self._state = State.RUNNING
         if self._new_request is not None and self._new_request.kind is RequestKind.HOLD:

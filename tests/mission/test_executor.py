@@ -304,6 +304,31 @@ def test_takeoff_when_already_flying_is_a_climb_and_arm_refusal_fails() -> None:
     assert "arm failed: PreArm" in ex.results[0].message
 
 
+def test_a_pause_during_the_take_off_request_climbs_with_the_servo_after_the_resume() -> None:
+    """The pause's hold supersedes the take-off request (the daemon cancels it, no answer ever comes): resumed in
+    the air the action climbs with the servo, resumed still on the ground it asks for the take-off again."""
+    for airborne in (True, False):
+        ex = MissionExecutor(parse_mission(doc('<takeoff height="2" threshold="0.1" timeout="30"/>')))
+        ex.start(0.0)
+        ground = NavSnapshot(0.0, pose(0, 0, 0), armed=True, landed=True)
+        out = ex.step(0.0, ground)
+        assert out.request is not None and out.request.kind is RequestKind.TAKEOFF
+        ex.pause(1.0)  # e.g. a vision-loss brake half-way up; the take-off request is never answered
+        assert ex.step(1.1, ground).request.kind is RequestKind.HOLD  # type: ignore[union-attr]
+        ex.resume(2.0)
+        now = NavSnapshot(2.0, pose(0, 0, -0.8), armed=True, landed=False) if airborne else ground
+        out = ex.step(2.0, now)
+        if airborne:
+            assert out.request is None and out.goal is not None
+            assert out.goal.T_ned_body_goal[2, 3] == pytest.approx(-2.0)
+            states = [ex.step(t, NavSnapshot(t, pose(0, 0, -2.0), armed=True, landed=False)).state
+                      for t in np.arange(2.1, 5.0, 0.1)]
+            assert states[-1] is State.COMPLETED and ex.results[0].result == "succeeded"
+        else:
+            assert out.request is not None and out.request.kind is RequestKind.TAKEOFF and out.goal is None
+            assert ex.pending_request is out.request
+
+
 def test_rack_frame_goals_go_through_T_ned_rack() -> None:
     rack = '<rack length="10"><pipe radius="0.15" gap="0.1"/><pipe radius="0.2" gap="0.1"/><pipe radius="0.15"/></rack>'
     body = '<gotoxy x="1.0" y="5.0" yaw="0"/>\n<gotoz z="2.5"/>\n<servo pipe="2" height="2.0" y="4.0" yaw="90"/>'
