@@ -88,6 +88,33 @@ async def test_vision_loss_short_holds_and_resumes_long_lands(sitl_available: Pa
         assert land_s <= 12.0 and 5.5 <= land_after <= 9.0
 
 
+async def test_vision_loss_during_the_take_off_climb_holds_then_the_take_off_finishes(
+        sitl_available: Path, tmp_path: Path) -> None:
+    # Seen in CI on a loaded VM: the brake cut ArduCopter's NAV_TAKEOFF climb short and the take-off action then
+    # waited for a climb nobody was flying until its timeout. Resumed in the air, it now climbs with the servo.
+    safety = {"vision_loss_hover_ms": 300, "vision_resume_s": 1.0}
+    async with sitl_rig(tmp_path, overrides={"safety": safety}) as rig:
+        d = rig.daemon
+        await rig.wait_until(lambda: d.counters.poses_sent >= 10, 20.0, "vision poses flowing")
+        await d.start_mission(mission(HOVER_LONG.replace('height="1.5"', 'height="2.0"'), name="climb-loss",
+                                      timeout_s=180.0), "climb-loss")
+        ex = d.executor
+        assert ex is not None
+        await rig.wait_until(lambda: rig.truth_height_m() > 0.3, 60.0, "the NAV_TAKEOFF climb under way", 0.02)
+        t_fault = rig.clock.now()
+        rig.vision_fault("vision-loss", t_fault, t_fault + 2.0)
+        await rig.wait_until(lambda: mode_is(rig, BRAKE), 3.0, "BRAKE during the climb")
+        held_m = rig.truth_height_m()
+        assert not ex.results and ex.state is State.PAUSED and held_m < 1.8, (ex.results, held_m)
+        took_s = await rig.wait_until(lambda: bool(ex.results), 30.0, "the take-off's result after vision returns")
+        assert ex.results[0].action_id == "takeoff" and ex.results[0].result == "succeeded", ex.results[0]
+        await rig.wait_until(lambda: mode_is(rig, GUIDED), 5.0, "GUIDED after the take-off")
+        rig.say("vision loss in the take-off climb on ArduCopter: " + json.dumps({
+            "held_at_m": round(held_m, 2), "take_off_done_after_s": round(took_s, 1),
+            "height_m": round(rig.truth_height_m(), 2)}))
+        assert rig.observer.armed and abs(rig.truth_height_m() - 2.0) < 0.25
+
+
 async def test_gcs_loss_holds_then_lands(sitl_available: Path, tmp_path: Path) -> None:
     safety = {"gcs_loss_hover_s": 2.0, "gcs_loss_land_s": 6.0}
     async with sitl_rig(tmp_path, overrides={"safety": safety}) as rig:
