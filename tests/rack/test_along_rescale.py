@@ -192,7 +192,7 @@ def test_ground_held_frames_rescale_to_the_filtered_height_unless_the_height_is_
             tr.config = RackTrackerConfig(ground_height_m=given)
         led, travel = _stretch(-3.5, -2.0, 9)
         tr._along_ledger = led
-        tr._zf, tr._zf_var = -2.0, 0.8**2  # not sure yet: no shift
+        tr._zf, tr._zf_var = -2.0, (1.5 * FILTER_MAX_STD_M) ** 2  # not sure yet: no shift
         T_old = tr.T_rack_cam.copy()
         tr._rescale_along(_last(tr), T_old, 0)
         assert tr.T_rack_cam[1, 3] == T_old[1, 3]

@@ -45,7 +45,10 @@ MIN_HEIGHT_SPREAD_M = 0.05  # floor of the heights' spread in the significance t
 SIGNIFICANCE = 3.0  # a rescale smaller than this many of its standard deviations is not made
 MIN_SHIFT_M = 0.02  # nor one smaller than this
 MAX_FRACTION = 0.5  # nor one larger than this fraction of the stretch's net travel
-FILTER_MAX_STD_M = 0.5  # a long-baseline height (`filter_correction_m`) is used once surer than this
+# A long-baseline height (`filter_correction_m`) is used once surer than this: half the first guess's 2 m, so
+# once fits have told the filter something. The solver's floor for a handed height (0.5 m) waited 10-40 frames
+# longer on the along cell, each booked at the first guess (docs/rack.md, "Thirty-sixth session on #14").
+FILTER_MAX_STD_M = 1.0
 
 
 @dataclass(frozen=True)
