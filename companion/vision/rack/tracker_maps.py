@@ -249,11 +249,11 @@ class TrackerMaps(TrackerState):
         """
         cfg = self.config
         keep = np.ones(uv.shape[0], dtype=bool)
-        # Only the vertical fit may start early (a full anchor window); with it switched off nothing fits before
-        # the across fit's settling, so the filter is not started before then either.
-        vertical_early = ground_held and cfg.ground_height_vertical_m > 0.0
+        # A vertical fit may run on a ground-held frame, and only it may start early (a full anchor window); with
+        # it switched off nothing fits before the across fit's settling, so the filter does not start before then.
+        vertical_fit = ground_held and cfg.ground_height_vertical_m > 0.0
         if cfg.ground_height_baseline_m <= 0.0 or cfg.ground_height_m is not None or self._z_g is None \
-                or self._frames < (SETTLE_FRAMES_VERTICAL if vertical_early else SETTLE_FRAMES):
+                or self._frames < (SETTLE_FRAMES_VERTICAL if vertical_fit else SETTLE_FRAMES):
             return keep
         if self._zf is None:
             self._zf, self._zf_var, self._zf_rejected = float(self._z_g), 2.0**2, 0
@@ -266,7 +266,7 @@ class TrackerMaps(TrackerState):
                                     estimate_rotation=self._gravity is None)
         if fit is not None:
             self._zf_across = True
-        elif ground_held and cfg.ground_height_vertical_m > 0.0:
+        elif vertical_fit:
             # No baseline across the pipes, and nothing but the ground measures the travel along them: the
             # camera's vertical motion, with the poses' along-pipe positions left free (`ground_height_vertical.py`).
             fit = fit_ground_height_vertical(T, self.camera, anchor_o, anchor_d, uv, self._zf,
