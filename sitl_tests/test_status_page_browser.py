@@ -127,7 +127,7 @@ async def test_status_page_in_headless_chromium(tmp_path: Path) -> None:
     token_file.chmod(0o600)
     upload = tmp_path / "page_hop.xml"
     upload.write_text(MISSION)
-    async with live_rig(tmp_path, width=320, height=240, fps=15.0, api=True, token_file=token_file,
+    async with live_rig(tmp_path, width=320, height=240, fps=10.0, api=True, token_file=token_file,
                         overrides={"video": {"width": 480, "height": 360}}) as rig:
         api = rig.daemon.api_server
         assert api is not None and api.token_required

@@ -172,6 +172,10 @@ class HealthTask(DaemonState):
                 # capture -> pose on the socket, median of the last 100 poses: what VISO_DELAY_MS is set from
                 "capture_to_send_ms_p50": (None if not self._latency_ms
                                            else round(float(np.median(self._latency_ms)), 1)),
+                # the vision worker's own time per frame (trackers, acquisition), last 100 frames: what the
+                # companion computer's CPU spends; above the frame period the camera's frames queue up
+                "vision_ms_p50": None if not self._vision_ms else round(float(np.median(self._vision_ms)), 1),
+                "vision_ms_max": None if not self._vision_ms else round(float(np.max(self._vision_ms)), 1),
             },
             "mission": mission,
             "safety": {

@@ -53,6 +53,7 @@ class FrameInputs:
     reset_T_ned_body: FloatArray | None = None
     attitude_known: bool = False  # roll_rad / pitch_rad come from the autopilot (else they are placeholders)
     acquisition: Any | None = None  # `AcquisitionInputs` for an attempt, when the tracker needs one
+    reset_keeps_appearance: bool = False  # that re-seed keeps the limb polarity learnt (after a gap in the frames)
 
 
 @dataclass(frozen=True)
@@ -162,10 +163,10 @@ class VisionPipeline:
         """Camera pose in the rack frame for a body pose in NED."""
         return frames.T_rack_cam_from_T_ned_body(T_ned_body, self.T_ned_rack, self.T_body_cam)
 
-    def reset_rack(self, T_ned_body: Any) -> None:
-        """Re-initialise the rack tracker at a body pose in NED."""
+    def reset_rack(self, T_ned_body: Any, keep_appearance: bool = False) -> None:
+        """Re-initialise the rack tracker at a body pose in NED (`RackTracker.reset`'s `keep_appearance`)."""
         if self.rack_tracker is not None:
-            self.rack_tracker.reset(self.T_rack_cam_from(T_ned_body))
+            self.rack_tracker.reset(self.T_rack_cam_from(T_ned_body), keep_appearance=keep_appearance)
 
     def _attitude_prior(self, inputs: FrameInputs) -> dict[str, Any]:
         """`RackTracker.track`'s attitude prior from the autopilot's roll and pitch (empty when off or unknown).
@@ -185,7 +186,7 @@ class VisionPipeline:
         """Run the configured trackers on one image (worker thread or inline)."""
         t0 = time.perf_counter()
         if inputs.reset_T_ned_body is not None:
-            self.reset_rack(inputs.reset_T_ned_body)
+            self.reset_rack(inputs.reset_T_ned_body, inputs.reset_keeps_appearance)
         rack_reset = inputs.reset_T_ned_body is not None and self.rack_tracker is not None
         rack = None
         ground = None

@@ -121,6 +121,7 @@ class DaemonState:
         self.mode_owner = ModeOwner()
         self._last_health_line = ""
         self._latency_ms: collections.deque[float] = collections.deque(maxlen=100)
+        self._vision_ms: collections.deque[float] = collections.deque(maxlen=100)  # measure() per frame
         self._safety_paused = False  # the running mission was paused by a safety hold
         self._mode_task: asyncio.Task[None] | None = None
         self._health_prev: tuple[int, int, int, int, float] = (0, 0, 0, 0, self.clock.now())

@@ -52,6 +52,9 @@ class VisionTask(HintCheckTask):
                 gz = float(getattr(nf.config, "ground_z_ned_m", 0.0)) if vg is None else float(vg)
                 height = gz - float(est.position_ned_m[2]) - z_cam_body
         reset = None
+        # after a gap in the frames the tracker was fine, only its motion model is stale: the re-seed keeps what
+        # it learnt of the scene (one solve instead of four; the four made the next frame late on a loaded CPU)
+        keep = self._rack_reset_reason.startswith("frame gap")
         if self._rack_reset_pending and self._hold_rack_reseed:
             self._rack_reset_pending = False  # the acquired pose is better than the filter's estimate
         if self._rack_reset_pending and nf is not None:
@@ -63,7 +66,8 @@ class VisionTask(HintCheckTask):
                 self._event("rack-tracker-reset", level=logging.DEBUG, position_std_m=pos_std,
                             reason=self._rack_reset_reason)
         return FrameInputs(height_m=height, roll_rad=roll, pitch_rad=pitch, reset_T_ned_body=reset,
-                           attitude_known=attitude_known, acquisition=self._acquisition_inputs(roll, pitch))
+                           attitude_known=attitude_known, acquisition=self._acquisition_inputs(roll, pitch),
+                           reset_keeps_appearance=keep)
 
     def _acquisition_inputs(self, roll: float, pitch: float) -> Any | None:
         """The vehicle's prior for a rack acquisition, when the pipeline is acquiring or a check of the start-hint
@@ -164,6 +168,7 @@ class VisionTask(HintCheckTask):
     def _after_measure(self, frame: Any, m: Measurement) -> None:
         assert self.nav_filter is not None and self.pipeline is not None
         self.counters.frames += 1
+        self._vision_ms.append(float(m.process_s) * 1e3)
         if m.acquisition is not None:
             self._report_acquisition(m)
         if m.hint_check is not None:

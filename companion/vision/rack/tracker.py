@@ -48,12 +48,15 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
 
     def reset(
         self, T_rack_cam: Any, cumulative_gaps: Any = None, position_std_m: float | None = None,
-        rotation_std_rad: float | None = None,
+        rotation_std_rad: float | None = None, keep_appearance: bool = False,
     ) -> None:
         """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity.
 
         `position_std_m` / `rotation_std_rad`: how far off that pose may be (1 sigma, m / rad; default
         the config's `reset_prior_*`); they set the first frame's prior and its search range.
+        `keep_appearance`: a re-seed of a tracker that was locked on this scene (e.g. after a gap in the
+        frames): the limbs' polarity and edge profiles it learnt are the scene's and are kept, so the first
+        frame solves once with them instead of trying the four polarity hypotheses.
         """
         self._T = check_transform(T_rack_cam, "T_rack_cam").copy()
         cfg = self.config
@@ -86,9 +89,11 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
             # guess again scaled the along-pipe motion by the guess's error (`companion sim --appearance field`,
             # seed 3: a re-seed mid-pass put z_g 1.2 m low and the estimate ran 1 m ahead within 4 s).
             self._z_g, self._z_g_var, self._zf, self._zf_var, self._zf_rejected, self._zf_across = ground
-        self._polarity[:] = 0.0
-        self._polarity_known[:] = False
-        self._profiles[:] = 0.0
+        self._appearance_kept = bool(keep_appearance) and bool(np.any(self._polarity_known))
+        if not self._appearance_kept:
+            self._polarity[:] = 0.0
+            self._polarity_known[:] = False
+            self._profiles[:] = 0.0
         self._texture = TextureMap.empty(self._ref_patch_size())
         self._prev_gray = None
         self._prev_gray_mean = None

@@ -54,6 +54,7 @@ class TrackerState:
         self._edge_bias = np.zeros(2)
         self._polarity = np.zeros(n_limbs)
         self._polarity_known = np.zeros(n_limbs, dtype=bool)
+        self._appearance_kept = False  # the last reset kept the polarity (`RackTracker.reset(keep_appearance)`)
         # Learned inner edge profile of each limb (zero rows: none yet); see `search_edges`.
         self._profiles = np.zeros((n_limbs, self.config.edge_profile_px))
         self._texture = TextureMap.empty(self._ref_patch_size())
