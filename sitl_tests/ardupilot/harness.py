@@ -88,8 +88,8 @@ async def sitl_rig(tmp_path: Path, *, extra_params: dict[str, float] | None = No
     """ArduCopter SITL + daemon (synthetic camera rendered in this process) in real time.
 
     10 frames/s, not 15: the renderer (40-46 ms a frame at 360x240), the tracker and the filter share this 2-core
-    machine with the SITL, and under the host's CPU steal (2026-12-03: 15-100 %) 15 frames/s starved the camera:
-    gaps of 0.3-0.8 s, re-seeds, ArduCopter's EKF failsafe (LAND); docs/missions.md, "A starved companion computer".
+    machine with the SITL, and with the host's CPU short (2026-12-03) 15 frames/s starved the camera: gaps of
+    0.3-0.8 s, re-seeds, ArduCopter's EKF failsafe (LAND); docs/missions.md, "A starved companion computer".
     """
     binary = sitl_binary()
     assert binary is not None
