@@ -50,7 +50,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
         self, T_rack_cam: Any, cumulative_gaps: Any = None, position_std_m: float | None = None,
         rotation_std_rad: float | None = None, keep_appearance: bool = False,
     ) -> None:
-        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and polarity.
+        """Re-initialize at pose `T_rack_cam` (4x4, camera in rack frame); forget texture and (unless kept) polarity.
 
         `position_std_m` / `rotation_std_rad`: how far off that pose may be (1 sigma, m / rad; default
         the config's `reset_prior_*`); they set the first frame's prior and its search range.
@@ -211,7 +211,7 @@ class RackTracker(TrackerSolve, TrackerMaps, TrackerHealth):
                     if again["n_agree"] >= last["n_agree"]:
                         last = again
         else:
-            pol_t = np.where(self._polarity_known & (np.abs(self._polarity) >= 0.5), np.sign(self._polarity), 0.0)
+            pol_t = self._known_polarity()
             last = self._solve(T, gaps, img_raw, img_f, tex_uv, False, pol_t, ground)
         status, n_tex, cond = self._status(last, T_pred, tex_uv.shape[0])
         after_clear = not status and cfg.retry_marginal and self._last_clear

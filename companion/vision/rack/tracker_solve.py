@@ -70,12 +70,10 @@ class TrackerSolve(TrackerState):
         """A first frame's solve from pose T and cumulative gaps: the four limb-polarity hypotheses (each
         side of every pipe brighter or darker than what is beside it), the one with most agreeing edges.
         After a reset that kept the appearance, one solve with the polarity learnt before it: the four cost
-        four times the time (90 against 25 ms at 360x240), and on a loaded companion computer that made the
+        four times the time (85 against 23 ms at 360x240), and on a loaded companion computer that made the
         next frame late, which asked for the next re-seed (ArduCopter SITL tier, 2026-12-03)."""
         if self._appearance_kept:
-            known = self._polarity_known & (np.abs(self._polarity) >= 0.5)
-            return self._solve(T, gaps, img_raw, img_f, tex_uv, True, np.where(known, np.sign(self._polarity), 0.0),
-                               None)
+            return self._solve(T, gaps, img_raw, img_f, tex_uv, True, self._known_polarity(), None)
         n_p = self.model.num_parallel
         best: dict[str, Any] | None = None
         for hyp in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):

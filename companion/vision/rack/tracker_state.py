@@ -37,6 +37,11 @@ class TrackerState:
     _ground_o: FloatArray  # set by `_reset_ground`
     _anchor_o: FloatArray
 
+    def _known_polarity(self) -> FloatArray:
+        """Per limb, the sign of its learnt polarity where it is known and clear (|p| >= 0.5), else 0 (open)."""
+        known = self._polarity_known & (np.abs(self._polarity) >= 0.5)
+        return np.where(known, np.sign(self._polarity), 0.0)
+
     def __init__(self, model: RackModel, camera: PinholeCamera, config: RackTrackerConfig | None = None) -> None:
         if not isinstance(model, RackModel):
             raise InputError(f"model: expected RackModel, got {type(model).__name__}")
