@@ -102,7 +102,7 @@ CELLS: dict[str, dict[str, Any]] = {
 TUNING_SEEDS = (0, 1)
 HELDBACK_SEEDS = (2, 3)
 # More tuning seeds for diagnosing one cell (`--seeds extra --cells ...`); never reported as held back.
-EXTRA_SEEDS = (4, 5, 6, 7)
+EXTRA_SEEDS = tuple(range(4, 20))
 
 
 def build_rack(name: str) -> RackModel:
@@ -431,6 +431,8 @@ def parse_set(items: list[str]) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", choices=("tuning", "heldback", "all", "extra"), default="tuning")
+    ap.add_argument("--seed-values", default="",
+                    help="comma-separated seeds instead of --seeds' half, to diagnose one cell (never held back)")
     ap.add_argument("--quick", action="store_true", help="smoke: first seed of the half, first 100 frames")
     ap.add_argument("--cells", default="", help="comma-separated subset of the cells")
     ap.add_argument("--rows", default="vision,edge_only,prior")
@@ -451,6 +453,14 @@ def main() -> None:
     t_start = time.perf_counter()
     seeds = {"tuning": TUNING_SEEDS, "heldback": HELDBACK_SEEDS, "all": TUNING_SEEDS + HELDBACK_SEEDS,
              "extra": EXTRA_SEEDS}[args.seeds]
+    if args.seed_values:
+        try:
+            seeds = tuple(int(v) for v in args.seed_values.split(",") if v.strip())
+        except ValueError:
+            raise SystemExit(f"--seed-values: integers separated by commas, got {args.seed_values!r}") from None
+        if set(seeds) & set(HELDBACK_SEEDS):
+            raise SystemExit(f"--seed-values: {sorted(set(seeds) & set(HELDBACK_SEEDS))} are held back; "
+                             "run them with --seeds heldback")
     if args.quick:
         seeds = seeds[:1]
     n_frames = 100 if args.quick else None
